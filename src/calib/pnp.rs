@@ -1,0 +1,215 @@
+//! Camera pose from known 3D points (PnP): a homography for planar point sets, the
+//! DLT otherwise, both on undistorted normalised coordinates, then Levenberg–Marquardt
+//! on the pixel reprojection error with the full camera model.
+
+use crate::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
+use nalgebra::{DMatrix, Matrix3x4, Matrix6, Vector6};
+
+/// Coplanarity test: the smallest principal extent is below 1e-6 of the largest.
+pub fn is_planar(pts: &[Vec3]) -> bool {
+    if pts.len() < 4 {
+        return true;
+    }
+    let (_, basis, sv) = principal_axes(pts);
+    let _ = basis;
+    sv[2] <= 1e-6 * sv[0].max(1e-300)
+}
+
+/// Centroid, principal axes (columns, right-handed) and singular values of a point set.
+pub fn principal_axes(pts: &[Vec3]) -> (Vec3, Mat3, Vec3) {
+    let c = pts.iter().sum::<Vec3>() / pts.len() as f64;
+    let mut cov = Mat3::zeros();
+    for p in pts {
+        let d = p - c;
+        cov += d * d.transpose();
+    }
+    let eig = cov.symmetric_eigen();
+    let mut order = [0usize, 1, 2];
+    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
+    let e1: Vec3 = eig.eigenvectors.column(order[0]).into();
+    let e2: Vec3 = eig.eigenvectors.column(order[1]).into();
+    let e3 = e1.cross(&e2);
+    let sv = Vec3::new(eig.eigenvalues[order[0]].max(0.0).sqrt(), eig.eigenvalues[order[1]].max(0.0).sqrt(), eig.eigenvalues[order[2]].max(0.0).sqrt());
+    (c, Mat3::from_columns(&[e1, e2, e3]), sv)
+}
+
+/// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
+pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
+    let xy: Vec<Vec2> = uv.iter().map(|p| camera.unproject(p)).collect::<Option<_>>()?;
+    let init = if is_planar(local) { planar_pose(local, &xy)? } else { dlt_pose(local, &xy)? };
+    Some(refine_pose(camera, local, uv, init))
+}
+
+/// Homography between the points' plane and the normalised image, decomposed.
+fn planar_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
+    if local.len() < 4 {
+        return None;
+    }
+    let (c, basis, _) = principal_axes(local);
+    let plane_from_local = Pose::new(basis.transpose(), -(basis.transpose() * c));
+    let ab: Vec<Vec2> = local.iter().map(|p| plane_from_local.apply(p).xy()).collect();
+    let h = homography(&ab, xy)?;
+    let (h1, h2, h3) = (h.column(0).into_owned(), h.column(1).into_owned(), h.column(2).into_owned());
+    let mut s = 2.0 / (h1.norm() + h2.norm());
+    if h3.z * s < 0.0 {
+        s = -s;
+    }
+    let (r1, r2) = (h1 * s, h2 * s);
+    let rot = so3::project_to_so3(&Mat3::from_columns(&[r1, r2, r1.cross(&r2)]));
+    Some(Pose::new(rot, h3 * s) * plane_from_local)
+}
+
+/// Hartley-normalised DLT homography `x ~ H a`.
+pub fn homography(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
+    let (ta, na) = normalizer(a);
+    let (tx, nx) = normalizer(x);
+    let mut m = DMatrix::zeros(2 * a.len(), 9);
+    for i in 0..a.len() {
+        let (p, q) = (na[i], nx[i]);
+        let row1 = [p.x, p.y, 1.0, 0.0, 0.0, 0.0, -q.x * p.x, -q.x * p.y, -q.x];
+        let row2 = [0.0, 0.0, 0.0, p.x, p.y, 1.0, -q.y * p.x, -q.y * p.y, -q.y];
+        for k in 0..9 {
+            m[(2 * i, k)] = row1[k];
+            m[(2 * i + 1, k)] = row2[k];
+        }
+    }
+    let v = null_vector(&m)?;
+    let hn = Mat3::from_row_slice(v.as_slice());
+    Some(tx.try_inverse()? * hn * ta)
+}
+
+/// Isotropic normalisation: centroid to the origin, mean distance √2.
+pub fn normalizer(p: &[Vec2]) -> (Mat3, Vec<Vec2>) {
+    let c = p.iter().sum::<Vec2>() / p.len() as f64;
+    let d = p.iter().map(|q| (q - c).norm()).sum::<f64>() / p.len() as f64;
+    let s = if d > 1e-300 { std::f64::consts::SQRT_2 / d } else { 1.0 };
+    let t = Mat3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0);
+    (t, p.iter().map(|q| (q - c) * s).collect())
+}
+
+/// Right singular vector of the smallest singular value (via the 9×9 or 12×12 normal matrix).
+pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
+    let ata = m.transpose() * m;
+    let eig = ata.symmetric_eigen();
+    let k = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?.0;
+    Some(eig.eigenvectors.column(k).into_owned())
+}
+
+/// Direct linear transform of a 3×4 projection on normalised coordinates.
+fn dlt_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
+    if local.len() < 6 {
+        return None;
+    }
+    let c = local.iter().sum::<Vec3>() / local.len() as f64;
+    let d = local.iter().map(|p| (p - c).norm()).sum::<f64>() / local.len() as f64;
+    let s = if d > 0.0 { 3f64.sqrt() / d } else { 1.0 };
+    let mut m = DMatrix::zeros(2 * local.len(), 12);
+    for (i, (p, q)) in local.iter().zip(xy).enumerate() {
+        let x = (p - c) * s;
+        let h = [x.x, x.y, x.z, 1.0];
+        for k in 0..4 {
+            m[(2 * i, k)] = h[k];
+            m[(2 * i, 8 + k)] = -q.x * h[k];
+            m[(2 * i + 1, 4 + k)] = h[k];
+            m[(2 * i + 1, 8 + k)] = -q.y * h[k];
+        }
+    }
+    let v = null_vector(&m)?;
+    let mut p = Matrix3x4::from_row_slice(v.as_slice());
+    let mut mm: Mat3 = p.fixed_view::<3, 3>(0, 0).into_owned();
+    if mm.determinant() < 0.0 {
+        p = -p;
+        mm = -mm;
+    }
+    let svd = mm.svd(true, true);
+    let (u, vt) = (svd.u?, svd.v_t?);
+    let scale = svd.singular_values.mean();
+    let rot = so3::project_to_so3(&(u * vt));
+    let t_norm = p.column(3) / scale;
+    // Undo the normalisation: X_n = s (X − c)  ⇒  t = t_n·(1/s)... expressed in metres.
+    let trans = t_norm / s - rot * c;
+    Some(Pose::new(rot, trans))
+}
+
+/// Gauss–Newton with Levenberg damping on the pixel reprojection error.
+pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> Pose {
+    let cost = |pose: &Pose| -> f64 {
+        local.iter().zip(uv).map(|(x, m)| camera.project(&pose.apply(x)).map_or(1e12, |p| (p - m).norm_squared())).sum()
+    };
+    let mut pose = init;
+    let mut c = cost(&pose);
+    let mut lambda = 1e-3;
+    for _ in 0..50 {
+        let mut h = Matrix6::zeros();
+        let mut g = Vector6::zeros();
+        for (x, m) in local.iter().zip(uv) {
+            let p = pose.apply(x);
+            let Some((proj, jp)) = camera.project_with_jacobian(&p) else { continue };
+            let r = proj - m;
+            let mut j = nalgebra::SMatrix::<f64, 2, 6>::zeros();
+            j.fixed_view_mut::<2, 3>(0, 0).copy_from(&jp);
+            j.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp * so3::skew(&(pose.rot * x))));
+            h += j.transpose() * j;
+            g += j.transpose() * r;
+        }
+        let mut improved = false;
+        for _ in 0..10 {
+            let mut hd = h;
+            for i in 0..6 {
+                hd[(i, i)] += lambda * h[(i, i)].max(1e-12);
+            }
+            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else { break };
+            let cand = pose.perturbed(&Vec3::new(step[0], step[1], step[2]), &Vec3::new(step[3], step[4], step[5]));
+            let cc = cost(&cand);
+            if cc < c {
+                let done = c - cc < 1e-14 * c.max(1e-30) || step.norm() < 1e-14;
+                pose = cand;
+                c = cc;
+                lambda = (lambda / 3.0).max(1e-12);
+                improved = !done;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    pose
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::geometry::CameraModel;
+
+    fn check(local: &[Vec3], camera: &Camera) {
+        let truth = Pose::from_rotvec(Vec3::new(0.3, -0.4, 0.2), Vec3::new(0.1, -0.2, 3.0));
+        let uv: Vec<Vec2> = local.iter().map(|x| camera.project(&truth.apply(x)).unwrap()).collect();
+        let est = estimate_pose(camera, local, &uv).unwrap();
+        let (dr, dt) = est.distance(&truth);
+        assert!(dr < 1e-9 && dt < 1e-9, "dr {dr} dt {dt}");
+    }
+
+    #[test]
+    fn planar_and_general_pnp_exact() {
+        let cam = Camera { model: CameraModel::Radtan { k1: -0.2, k2: 0.05, p1: 1e-3, p2: 0.0, k3: 0.0 }, ..Camera::pinhole(900.0, 900.0, 640.0, 480.0, 1280, 960) };
+        let planar: Vec<Vec3> = (0..12).map(|i| Vec3::new(0.1 * (i % 4) as f64, 0.12 * (i / 4) as f64, 0.0)).collect();
+        check(&planar, &cam);
+        let general: Vec<Vec3> = (0..10).map(|i| Vec3::new(0.1 * (i % 4) as f64 - 0.2, 0.12 * (i / 4) as f64, 0.05 * ((i * 7) % 5) as f64)).collect();
+        check(&general, &cam);
+    }
+
+    #[test]
+    fn noisy_pnp_is_close() {
+        use rand::{Rng, SeedableRng};
+        let cam = Camera::pinhole(1000.0, 1000.0, 640.0, 480.0, 1280, 960);
+        let truth = Pose::from_rotvec(Vec3::new(0.1, 0.2, -0.1), Vec3::new(0.0, 0.1, 2.0));
+        let local: Vec<Vec3> = (0..20).map(|i| Vec3::new(0.2 * (i % 5) as f64 - 0.4, 0.2 * (i / 5) as f64 - 0.3, 0.1 * (i % 3) as f64)).collect();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let uv: Vec<Vec2> = local.iter().map(|x| cam.project(&truth.apply(x)).unwrap() + Vec2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5))).collect();
+        let est = estimate_pose(&cam, &local, &uv).unwrap();
+        let (dr, dt) = est.distance(&truth);
+        assert!(dr < 5e-3 && dt < 1e-2, "dr {dr} dt {dt}");
+    }
+}

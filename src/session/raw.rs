@@ -1,0 +1,131 @@
+//! The session manifest as it travels (JSON). See `docs/formats.md`.
+
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SessionManifest {
+    #[serde(default = "default_version")]
+    pub version: u32,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle_id: Option<String>,
+    #[serde(default)]
+    pub method: Method,
+    pub reference_camera: String,
+    pub cameras: Vec<CameraSpec>,
+    #[serde(default)]
+    pub targets: Vec<TargetSpec>,
+    #[serde(default)]
+    pub scale: Vec<ScaleSpec>,
+    #[serde(default)]
+    pub frames: Vec<FrameSpec>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub priors: Option<Priors>,
+}
+
+fn default_version() -> u32 {
+    1
+}
+
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Method {
+    #[default]
+    Motion,
+    Vanishing,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSpec {
+    pub id: String,
+    pub model: String,
+    pub width: u32,
+    pub height: u32,
+    pub intrinsics: Intrinsics,
+    #[serde(default)]
+    pub distortion: Vec<f64>,
+}
+
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Intrinsics {
+    pub fx: f64,
+    pub fy: f64,
+    pub cx: f64,
+    pub cy: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
+pub enum TargetSpec {
+    /// Kalibr AprilGrid: `rows × cols` tags of side `tag_size` (m), gap `tag_spacing × tag_size`.
+    Aprilgrid { id: String, rows: u32, cols: u32, tag_size: f64, tag_spacing: f64, first_id: u32 },
+    /// Scattered AprilTags of known size, layout unknown. `ids` restricts which tags belong here.
+    Apriltags {
+        id: String,
+        tag_size: f64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        ids: Option<Vec<u32>>,
+    },
+    /// Wu's line target (vanishing method): line length L1 and spacing L2 (m).
+    LineTarget { id: String, length: f64, spacing: f64 },
+    /// Points of known coordinates (m) in the target's own frame: a rigid body.
+    Points { id: String, points: BTreeMap<String, [f64; 3]> },
+}
+
+impl TargetSpec {
+    pub fn id(&self) -> &str {
+        match self {
+            TargetSpec::Aprilgrid { id, .. }
+            | TargetSpec::Apriltags { id, .. }
+            | TargetSpec::LineTarget { id, .. }
+            | TargetSpec::Points { id, .. } => id,
+        }
+    }
+}
+
+/// A measured distance between two points (Lébraly §2), fixing the metric scale.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScaleSpec {
+    pub a: String,
+    pub b: String,
+    /// Metres.
+    pub distance: f64,
+    /// 1-σ of the measurement in metres (default 0.5 mm).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sigma: Option<f64>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FrameSpec {
+    pub index: i64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub timestamp: Option<f64>,
+    /// Camera id → image path (relative to the manifest) for sessions of images.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub images: BTreeMap<String, String>,
+    /// Camera id → detections.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub observations: BTreeMap<String, Vec<ObservationSpec>>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ObservationSpec {
+    pub point: String,
+    pub u: f64,
+    pub v: f64,
+}
+
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Priors {
+    /// Camera id → its height (m) above the reference camera along the motion-plane
+    /// normal, used only where planar motion leaves it unobservable.
+    #[serde(default)]
+    pub height_offsets: BTreeMap<String, f64>,
+}
