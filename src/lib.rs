@@ -7,3 +7,4 @@ pub mod geometry;
 pub mod session;
 pub mod solver;
 pub mod calib;
+pub mod synth;

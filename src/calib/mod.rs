@@ -2,3 +2,6 @@
 
 pub mod pnp;
 pub mod twoview;
+pub mod trajectory;
+pub mod motion;
+pub mod handeye;

@@ -1,0 +1,399 @@
+//! Per-camera trajectories (Lébraly §2): each static scene is reconstructed on its own
+//! and every image that sees it gets its pose `cam_from_scene`.
+//!
+//! A *scene* is a connected set of points: points seen together in one image, and the
+//! corners of one rigid body, belong to the same scene. After a U-turn a camera sees
+//! another camera's scene: its images then carry poses in that scene, which is what
+//! the scene-permutation constraints of the initialisation use.
+//!
+//! Known geometry (bodies) → PnP; unknown geometry (free points) → two-view SfM
+//! (essential matrix, triangulation), metric scale from the measured distances; then a
+//! bundle adjustment per scene over all its images.
+
+use super::{pnp, twoview};
+use crate::geometry::{Pose, Vec2, Vec3};
+use crate::session::{PointKind, Session};
+use crate::solver::bundle::{BundleProblem, DistanceConstraint, LmOptions, Obs, PointRef};
+use std::collections::{BTreeMap, HashMap};
+
+/// An image: (frame position in `session.frames`, camera index).
+pub type ImageKey = (usize, usize);
+
+#[derive(Clone, Debug)]
+pub struct SceneRecon {
+    /// Free points of the scene, in scene coordinates.
+    pub points: BTreeMap<usize, Vec3>,
+    /// Rigid bodies of the scene: `scene_from_body`.
+    pub bodies: BTreeMap<usize, Pose>,
+    /// `cam_from_scene` of every image that sees the scene and could be posed.
+    pub poses: BTreeMap<ImageKey, Pose>,
+    /// Whether the scale is metric (bodies, or measured distances).
+    pub metric: bool,
+    /// Pixel RMS of the scene bundle adjustment.
+    pub rms: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct Trajectories {
+    /// Scene index of every point (indexed like `session.points`), `None` if never seen.
+    pub scene_of_point: Vec<Option<usize>>,
+    pub scenes: Vec<SceneRecon>,
+    /// Scenes that could not be reconstructed, with the reason.
+    pub failed_scenes: Vec<(usize, String)>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum TrajectoryError {
+    #[error("no camera observes any point")]
+    NothingObserved,
+}
+
+struct UnionFind(Vec<usize>);
+impl UnionFind {
+    fn find(&mut self, i: usize) -> usize {
+        let mut r = i;
+        while self.0[r] != r {
+            r = self.0[r];
+        }
+        let mut j = i;
+        while self.0[j] != r {
+            let n = self.0[j];
+            self.0[j] = r;
+            j = n;
+        }
+        r
+    }
+    fn union(&mut self, a: usize, b: usize) {
+        let (ra, rb) = (self.find(a), self.find(b));
+        if ra != rb {
+            self.0[ra] = rb;
+        }
+    }
+}
+
+/// Group points into scenes.
+fn scene_components(session: &Session) -> (Vec<Option<usize>>, usize) {
+    let n = session.points.ids.len();
+    let nb = session.points.bodies.len();
+    // Nodes: points, then one node per body.
+    let mut uf = UnionFind((0..n + nb).collect());
+    for (p, kind) in session.points.kinds.iter().enumerate() {
+        if let PointKind::Body { body, .. } = kind {
+            uf.union(p, n + body);
+        }
+    }
+    let mut seen = vec![false; n];
+    for f in &session.frames {
+        for obs in &f.observations {
+            for w in obs.windows(2) {
+                uf.union(w[0].point, w[1].point);
+            }
+            for o in obs {
+                seen[o.point] = true;
+            }
+        }
+    }
+    let mut label: HashMap<usize, usize> = HashMap::new();
+    let mut out = vec![None; n];
+    for p in 0..n {
+        if seen[p] {
+            let r = uf.find(p);
+            let next = label.len();
+            out[p] = Some(*label.entry(r).or_insert(next));
+        }
+    }
+    (out, label.len())
+}
+
+/// Reconstruct every scene and pose every image in it.
+pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, TrajectoryError> {
+    let (scene_of_point, n_scenes) = scene_components(session);
+    if n_scenes == 0 {
+        return Err(TrajectoryError::NothingObserved);
+    }
+    let mut scenes = Vec::new();
+    let mut failed_scenes = Vec::new();
+    for s in 0..n_scenes {
+        match reconstruct_scene(session, &scene_of_point, s, opts) {
+            Ok(r) => scenes.push(r),
+            Err(e) => {
+                failed_scenes.push((s, e));
+                scenes.push(SceneRecon { points: BTreeMap::new(), bodies: BTreeMap::new(), poses: BTreeMap::new(), metric: false, rms: f64::NAN });
+            }
+        }
+    }
+    Ok(Trajectories { scene_of_point, scenes, failed_scenes })
+}
+
+/// Observations of scene `s` per image.
+fn scene_images(session: &Session, scene_of_point: &[Option<usize>], s: usize) -> BTreeMap<ImageKey, Vec<(usize, Vec2)>> {
+    let mut out: BTreeMap<ImageKey, Vec<(usize, Vec2)>> = BTreeMap::new();
+    for (fi, f) in session.frames.iter().enumerate() {
+        for (ci, obs) in f.observations.iter().enumerate() {
+            for o in obs {
+                if scene_of_point[o.point] == Some(s) {
+                    out.entry((fi, ci)).or_default().push((o.point, o.uv));
+                }
+            }
+        }
+    }
+    out
+}
+
+fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usize, opts: &LmOptions) -> Result<SceneRecon, String> {
+    let images = scene_images(session, scene_of_point, s);
+    let kinds = &session.points.kinds;
+    let cams: Vec<_> = session.cameras.iter().map(|c| c.camera.clone()).collect();
+    let has_bodies = images.values().flatten().any(|(p, _)| matches!(kinds[*p], PointKind::Body { .. }));
+    let mut poses: BTreeMap<ImageKey, Pose> = BTreeMap::new();
+    let mut bodies: BTreeMap<usize, Pose> = BTreeMap::new();
+    let mut points: BTreeMap<usize, Vec3> = BTreeMap::new();
+    let mut metric = has_bodies;
+
+    if has_bodies {
+        // Anchor: the body with the most observations defines the scene frame.
+        let mut count: HashMap<usize, usize> = HashMap::new();
+        for (p, _) in images.values().flatten() {
+            if let PointKind::Body { body, .. } = kinds[*p] {
+                *count.entry(body).or_default() += 1;
+            }
+        }
+        let anchor = count.iter().max_by_key(|(b, c)| (**c, std::cmp::Reverse(**b))).map(|(b, _)| *b).ok_or("no body")?;
+        bodies.insert(anchor, Pose::identity());
+        loop {
+            let mut progress = false;
+            for (&key, obs) in &images {
+                // Pose the image from every placed body it sees.
+                if !poses.contains_key(&key) {
+                    let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
+                        .iter()
+                        .filter_map(|(p, uv)| match kinds[*p] {
+                            PointKind::Body { body, local } => bodies.get(&body).map(|sb| (sb.apply(&local), *uv)),
+                            PointKind::Free => None,
+                        })
+                        .unzip();
+                    if local.len() >= 4 && (pnp::is_planar(&local) || local.len() >= 6) {
+                        if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
+                            poses.insert(key, p);
+                            progress = true;
+                        }
+                    }
+                }
+                // Place the bodies this posed image sees but that are not placed yet.
+                if let Some(cam_from_scene) = poses.get(&key).copied() {
+                    let mut per_body: BTreeMap<usize, (Vec<Vec3>, Vec<Vec2>)> = BTreeMap::new();
+                    for (p, uv) in obs {
+                        if let PointKind::Body { body, local } = kinds[*p] {
+                            if !bodies.contains_key(&body) {
+                                let e = per_body.entry(body).or_default();
+                                e.0.push(local);
+                                e.1.push(*uv);
+                            }
+                        }
+                    }
+                    for (body, (local, uv)) in per_body {
+                        if local.len() >= 4 {
+                            if let Some(cam_from_body) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
+                                bodies.insert(body, cam_from_scene.inverse() * cam_from_body);
+                                progress = true;
+                            }
+                        }
+                    }
+                }
+            }
+            if !progress {
+                break;
+            }
+        }
+    } else {
+        let (a, b, rel) = best_pair(&images, &cams).ok_or_else(|| {
+            "no two images share 8 points with enough parallax (a scene of unknown geometry needs a two-view start; give its coordinates as a points target or use tags)".to_string()
+        })?;
+        poses.insert(a, Pose::identity());
+        poses.insert(b, rel);
+    }
+
+    // Grow: triangulate free points seen by ≥2 posed images, resect images from them.
+    loop {
+        let before = (poses.len(), points.len());
+        let mut rays: BTreeMap<usize, Vec<(Pose, Vec2)>> = BTreeMap::new();
+        for (key, obs) in &images {
+            if let Some(p) = poses.get(key) {
+                for (pt, uv) in obs {
+                    if kinds[*pt] == PointKind::Free && !points.contains_key(pt) {
+                        if let Some(xy) = cams[key.1].unproject(uv) {
+                            rays.entry(*pt).or_default().push((*p, xy));
+                        }
+                    }
+                }
+            }
+        }
+        for (pt, views) in rays {
+            if views.len() >= 2 {
+                if let Some(x) = twoview::triangulate(&views) {
+                    let ok = views.iter().all(|(p, _)| p.apply(&x).z > 0.0);
+                    let par = twoview::parallax(&views[0].0, &views[views.len() - 1].0, &x);
+                    if ok && par > 0.5f64.to_radians() {
+                        points.insert(pt, x);
+                    }
+                }
+            }
+        }
+        for (key, obs) in &images {
+            if poses.contains_key(key) {
+                continue;
+            }
+            let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
+                .iter()
+                .filter_map(|(p, uv)| match kinds[*p] {
+                    PointKind::Free => points.get(p).map(|x| (*x, *uv)),
+                    PointKind::Body { body, local } => bodies.get(&body).map(|sb| (sb.apply(&local), *uv)),
+                })
+                .unzip();
+            if local.len() >= 6 || (local.len() >= 4 && pnp::is_planar(&local)) {
+                if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
+                    poses.insert(*key, p);
+                }
+            }
+        }
+        if (poses.len(), points.len()) == before {
+            break;
+        }
+    }
+
+    // Metric scale from measured distances between reconstructed free points.
+    if !has_bodies {
+        let ratios: Vec<f64> = session
+            .distances
+            .iter()
+            .filter_map(|d| Some(d.distance / (points.get(&d.a)? - points.get(&d.b)?).norm()))
+            .filter(|r| r.is_finite())
+            .collect();
+        if let Some(scale) = median(ratios) {
+            metric = true;
+            for x in points.values_mut() {
+                *x *= scale;
+            }
+            for p in poses.values_mut() {
+                p.trans *= scale;
+            }
+        }
+    }
+
+    let rms = refine_scene(session, &images, &mut poses, &mut points, &mut bodies, has_bodies, opts);
+    Ok(SceneRecon { points, bodies, poses, metric, rms })
+}
+
+fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
+}
+
+/// The image pair to start a scene of unknown geometry from: ≥ 8 shared points, the
+/// largest median parallax. Returns the two keys and `cam_b_from_cam_a`.
+fn best_pair(images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>, cams: &[crate::geometry::Camera]) -> Option<(ImageKey, ImageKey, Pose)> {
+    let keys: Vec<&ImageKey> = images.keys().collect();
+    // Bound the work on long sequences: pair each of the first images with a spread of others.
+    let step = (keys.len() / 40).max(1);
+    let mut best: Option<(f64, ImageKey, ImageKey, Pose)> = None;
+    for i in (0..keys.len()).step_by(step).take(40) {
+        for j in (i + 1..keys.len()).step_by(step) {
+            let (a, b) = (&images[keys[i]], &images[keys[j]]);
+            let bmap: HashMap<usize, Vec2> = b.iter().copied().collect();
+            let mut x1 = Vec::new();
+            let mut x2 = Vec::new();
+            for (p, uv) in a {
+                if let Some(uv2) = bmap.get(p) {
+                    if let (Some(p1), Some(p2)) = (cams[keys[i].1].unproject(uv), cams[keys[j].1].unproject(uv2)) {
+                        x1.push(p1);
+                        x2.push(p2);
+                    }
+                }
+            }
+            if x1.len() < 8 {
+                continue;
+            }
+            let Some(rel) = twoview::relative_pose(&x1, &x2) else { continue };
+            let pars: Vec<f64> = x1
+                .iter()
+                .zip(&x2)
+                .filter_map(|(p, q)| twoview::triangulate(&[(Pose::identity(), *p), (rel, *q)]).map(|x| twoview::parallax(&Pose::identity(), &rel, &x)))
+                .collect();
+            let score = median(pars).unwrap_or(0.0) * (x1.len() as f64).sqrt();
+            if best.as_ref().is_none_or(|b| score > b.0) {
+                best = Some((score, *keys[i], *keys[j], rel));
+            }
+        }
+    }
+    best.filter(|b| b.0 > 0.0).map(|(_, a, b, r)| (a, b, r))
+}
+
+/// Bundle adjustment of one scene; every posed image is its own "rig pose".
+fn refine_scene(
+    session: &Session,
+    images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
+    poses: &mut BTreeMap<ImageKey, Pose>,
+    points: &mut BTreeMap<usize, Vec3>,
+    bodies: &mut BTreeMap<usize, Pose>,
+    has_bodies: bool,
+    opts: &LmOptions,
+) -> f64 {
+    let keys: Vec<ImageKey> = poses.keys().copied().collect();
+    let pt_ids: Vec<usize> = points.keys().copied().collect();
+    let pt_index: HashMap<usize, usize> = pt_ids.iter().enumerate().map(|(i, p)| (*p, i)).collect();
+    let body_ids: Vec<usize> = bodies.keys().copied().collect();
+    let body_index: HashMap<usize, usize> = body_ids.iter().enumerate().map(|(i, b)| (*b, i)).collect();
+    let ncam = session.cameras.len();
+    let point_ref = |p: usize| -> Option<PointRef> {
+        match session.points.kinds[p] {
+            PointKind::Free => pt_index.get(&p).map(|&i| PointRef::Free(i)),
+            PointKind::Body { body, local } => body_index.get(&body).map(|&b| PointRef::Body { body: b, local }),
+        }
+    };
+    let mut observations = Vec::new();
+    for (r, key) in keys.iter().enumerate() {
+        for (p, uv) in &images[key] {
+            if let Some(point) = point_ref(*p) {
+                observations.push(Obs { rig: r, cam: key.1, point, uv: *uv });
+            }
+        }
+    }
+    let distances = session
+        .distances
+        .iter()
+        .filter_map(|d| Some(DistanceConstraint { a: point_ref(d.a)?, b: point_ref(d.b)?, distance: d.distance, sigma: d.sigma }))
+        .collect();
+    let mut problem = BundleProblem {
+        cameras: session.cameras.iter().map(|c| c.camera.clone()).collect(),
+        rig_from_cam: vec![Pose::identity(); ncam],
+        cam_fixed: vec![true; ncam],
+        world_from_rig: keys.iter().map(|k| poses[k].inverse()).collect(),
+        // Gauge: the anchor body (scene frame) or else the first image is fixed.
+        rig_fixed: (0..keys.len()).map(|i| !has_bodies && i == 0).collect(),
+        points: pt_ids.iter().map(|p| points[p]).collect(),
+        world_from_body: body_ids.iter().map(|b| bodies[b]).collect(),
+        body_fixed: body_ids.iter().enumerate().map(|(i, _)| has_bodies && i == 0 && bodies[&body_ids[0]] == Pose::identity()).collect(),
+        observations,
+        distances,
+        pixel_sigma: 1.0,
+    };
+    // Drop observations that do not project at the start (a bad pose would poison LM).
+    let keep: Vec<bool> = problem.observations.iter().map(|o| problem.point_in_camera(o).z > 0.0).collect();
+    let mut it = keep.iter();
+    problem.observations.retain(|_| *it.next().unwrap_or(&false));
+    let _ = problem.solve(opts);
+    for (r, key) in keys.iter().enumerate() {
+        poses.insert(*key, problem.world_from_rig[r].inverse());
+    }
+    for (i, p) in pt_ids.iter().enumerate() {
+        points.insert(*p, problem.points[i]);
+    }
+    for (i, b) in body_ids.iter().enumerate() {
+        bodies.insert(*b, problem.world_from_body[i]);
+    }
+    let n = problem.observations.len().max(1) as f64;
+    (problem.observations.iter().filter_map(|o| problem.residual(o)).map(|r| r.norm_squared()).sum::<f64>() / n).sqrt()
+}
