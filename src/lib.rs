@@ -8,3 +8,6 @@ pub mod session;
 pub mod solver;
 pub mod calib;
 pub mod synth;
+pub mod result;
+pub mod pipeline;
+pub mod export;

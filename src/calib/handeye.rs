@@ -32,8 +32,7 @@ pub struct InitOutput {
     pub pairs_dropped_near_180: usize,
     /// Some scene is seen by two different cameras (scene permutation).
     pub permutation: bool,
-    /// Directions of the translation system left undetermined, and how they were set.
-    pub translation_nullity: usize,
+    /// How the undetermined translation directions were set (`prior` or `zero`).
     pub height_source: Option<&'static str>,
 }
 
@@ -325,44 +324,42 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         }
         cams_per_scene.values().any(|cs| cs.len() > 1)
     };
-    let eig = ((&ata + ata.transpose()) * 0.5).symmetric_eigen();
-    let lmax = eig.eigenvalues.amax().max(1e-300);
-    let mut x = DVector::zeros(dim);
-    let mut null = Vec::new();
-    for k in 0..dim {
-        let l = eig.eigenvalues[k];
-        let v = eig.eigenvectors.column(k);
-        if l > 1e-10 * lmax {
-            x += v * (v.dot(&atb) / l);
-        } else {
-            null.push(v.into_owned());
-        }
-    }
+    // Directions the motion class leaves undetermined (height along the plane normal;
+    // every axis for rotation-degenerate motion) are only *nearly* null once the poses
+    // are noisy, and plain least squares would amplify the noise along them by orders of
+    // magnitude. A small Tikhonov term pulls them to `priors.height_offsets` (or 0),
+    // weighted 1e-3 of the mean diagonal: negligible wherever the data constrain them,
+    // which the rig bundle adjustment then corrects anyway.
+    let n_axis = Vec3::from(motion.axis);
+    let held: Vec<Vec3> = match motion.class {
+        MotionClass::General => vec![],
+        MotionClass::Planar => vec![n_axis],
+        _ => vec![Vec3::x(), Vec3::y(), Vec3::z()],
+    };
     let mut height_source = None;
-    if !null.is_empty() && motion.class == MotionClass::Planar {
-        // Set each camera's height along the plane normal from the prior, else 0.
-        let n = Vec3::from(motion.axis);
-        let mut rows = Vec::new();
-        let mut rhs = Vec::new();
+    if !held.is_empty() {
+        let w2 = 1e-3 * ata.trace() / dim.max(1) as f64;
         let mut used_prior = false;
         for c in 0..nc {
-            if let Some(cc) = cam_col[c] {
-                let h = session.height_priors[c];
-                used_prior |= h.is_some();
-                let row: Vec<f64> = null.iter().map(|v| n.x * v[3 * cc] + n.y * v[3 * cc + 1] + n.z * v[3 * cc + 2]).collect();
-                let cur = n.x * x[3 * cc] + n.y * x[3 * cc + 1] + n.z * x[3 * cc + 2];
-                rows.push(row);
-                rhs.push(h.unwrap_or(0.0) - cur);
+            let Some(cc) = cam_col[c] else { continue };
+            let h = if motion.class == MotionClass::Planar { session.height_priors[c] } else { None };
+            used_prior |= h.is_some();
+            for d in &held {
+                let target = h.unwrap_or(0.0);
+                for a in 0..3 {
+                    for b in 0..3 {
+                        ata[(3 * cc + a, 3 * cc + b)] += w2 * d[a] * d[b];
+                    }
+                    atb[3 * cc + a] += w2 * d[a] * target;
+                }
             }
-        }
-        let a = DMatrix::from_fn(rows.len(), null.len(), |i, j| rows[i][j]);
-        let b = DVector::from_vec(rhs);
-        let coef = crate::solver::bundle::symmetric_pseudo_inverse(&(a.transpose() * &a), 1e-9) * (a.transpose() * b);
-        for (j, v) in null.iter().enumerate() {
-            x += v * coef[j];
         }
         height_source = Some(if used_prior { "prior" } else { "zero" });
     }
+    let x = match ata.clone().cholesky() {
+        Some(ch) => ch.solve(&atb),
+        None => crate::solver::bundle::symmetric_pseudo_inverse(&ata, 1e-12) * &atb,
+    };
 
     let ref_from_cam: Vec<Pose> = (0..nc)
         .map(|c| match cam_col[c] {
@@ -395,7 +392,6 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         pairs_dropped_small: stats.1,
         pairs_dropped_near_180: stats.2,
         permutation,
-        translation_nullity: null.len(),
         height_source,
     })
 }

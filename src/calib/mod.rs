@@ -5,3 +5,5 @@ pub mod twoview;
 pub mod trajectory;
 pub mod motion;
 pub mod handeye;
+pub mod rig_ba;
+pub mod diagnostics;

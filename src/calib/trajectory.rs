@@ -378,6 +378,7 @@ fn refine_scene(
         body_fixed: body_ids.iter().enumerate().map(|(i, _)| has_bodies && i == 0 && bodies[&body_ids[0]] == Pose::identity()).collect(),
         observations,
         distances,
+        priors: vec![],
         pixel_sigma: 1.0,
     };
     // Drop observations that do not project at the start (a bad pose would poison LM).

@@ -45,6 +45,17 @@ pub struct DistanceConstraint {
     pub sigma: f64,
 }
 
+/// A Gaussian prior on one direction of the extrinsics' tangent space at `origin`:
+/// `Σ_c v_c · [t_c − t0_c ; log(R_c R0_cᵀ)] ≈ 0 ± sigma`. It holds directions the data
+/// cannot determine (the height under planar motion) at their initial value, so that
+/// LM does not fit noise by wandering along them.
+#[derive(Clone, Debug)]
+pub struct DirectionPrior {
+    pub terms: Vec<(usize, Vector6<f64>)>,
+    pub origin: Vec<Pose>,
+    pub sigma: f64,
+}
+
 #[derive(Clone, Debug)]
 pub struct BundleProblem {
     pub cameras: Vec<Camera>,
@@ -57,6 +68,7 @@ pub struct BundleProblem {
     pub body_fixed: Vec<bool>,
     pub observations: Vec<Obs>,
     pub distances: Vec<DistanceConstraint>,
+    pub priors: Vec<DirectionPrior>,
     /// The pixel noise the distance residuals are scaled to (see [`DistanceConstraint`]).
     pub pixel_sigma: f64,
 }
@@ -189,6 +201,18 @@ impl BundleProblem {
         ((self.point_world(&d.a) - self.point_world(&d.b)).norm() - d.distance) * (self.pixel_sigma / d.sigma)
     }
 
+    fn prior_residual(&self, p: &DirectionPrior) -> f64 {
+        let mut r = 0.0;
+        for (i, (c, v)) in p.terms.iter().enumerate() {
+            let cur = &self.rig_from_cam[*c];
+            let o = &p.origin[i];
+            let dt = cur.trans - o.trans;
+            let dr = crate::geometry::so3::log(&(cur.rot * o.rot.transpose()));
+            r += v.fixed_rows::<3>(0).dot(&dt) + v.fixed_rows::<3>(3).dot(&dr);
+        }
+        r * (self.pixel_sigma / p.sigma)
+    }
+
     fn layout(&self) -> Layout {
         let mut in_distance_pt = vec![false; self.points.len()];
         let mut in_distance_body = vec![false; self.world_from_body.len()];
@@ -273,6 +297,9 @@ impl BundleProblem {
         for d in &self.distances {
             c += self.distance_residual(d).powi(2);
         }
+        for p in &self.priors {
+            c += self.prior_residual(p).powi(2);
+        }
         0.5 * c
     }
 
@@ -312,6 +339,30 @@ impl BundleProblem {
             let mut j_b = J26::zeros();
             j_b.fixed_view_mut::<1, 6>(0, 0).copy_from(&(-u * jb));
             self.accumulate(&mut n, &[(sa, za, j_a), (sb, zb, j_b), zero, zero], &r, 1.0, None);
+        }
+        for p in &self.priors {
+            let r = Vec2::new(self.prior_residual(p), 0.0);
+            n.cost += 0.5 * r.x * r.x;
+            let s = self.pixel_sigma / p.sigma;
+            let mut blocks: Blocks = [zero; 4];
+            for (i, (c, v)) in p.terms.iter().take(4).enumerate() {
+                let mut j = J26::zeros();
+                j.fixed_view_mut::<1, 6>(0, 0).copy_from(&(v.transpose() * s));
+                blocks[i] = (layout.cam[*c], 6, j);
+            }
+            // Priors spanning more than 4 cameras are applied in chunks of 4 blocks;
+            // cross terms between chunks are dropped (a first-order approximation that
+            // only slows convergence along the held direction, never moves the minimum).
+            self.accumulate(&mut n, &blocks, &r, 1.0, None);
+            for chunk in p.terms.chunks(4).skip(1) {
+                let mut blocks: Blocks = [zero; 4];
+                for (i, (c, v)) in chunk.iter().enumerate() {
+                    let mut j = J26::zeros();
+                    j.fixed_view_mut::<1, 6>(0, 0).copy_from(&(v.transpose() * s));
+                    blocks[i] = (layout.cam[*c], 6, j);
+                }
+                self.accumulate(&mut n, &blocks, &r, 1.0, None);
+            }
         }
         Some(n)
     }
@@ -682,6 +733,7 @@ mod tests {
             body_fixed: vec![false],
             observations,
             distances: vec![DistanceConstraint { a: PointRef::Free(0), b: PointRef::Free(3), distance: 0.0, sigma: 1e-3 }],
+            priors: vec![],
             pixel_sigma: 1.0,
         };
         // Make the observations exact.

@@ -1,0 +1,254 @@
+//! The stage runner of the motion method: session → result document.
+//! trajectories → linear initialisation → rig bundle adjustment → diagnostics.
+//! Never panics on input: every failure becomes a `failed` document with a reason.
+
+use crate::calib::diagnostics::{axis_unobservable, lost_dof, observability, residual_report};
+use crate::calib::handeye::{initialise, InitError};
+use crate::calib::motion::MotionClass;
+use crate::calib::rig_ba::{refine, RigBaOptions};
+use crate::calib::trajectory;
+use crate::geometry::{so3, Pose};
+use crate::result::*;
+use crate::session::{Method, Session};
+use crate::solver::bundle::LmOptions;
+use std::time::Instant;
+
+#[derive(Clone, Debug, Default)]
+pub struct CalibOptions {
+    pub rig_ba: RigBaOptions,
+}
+
+pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
+    let (r, pi, y) = so3::to_rpy(&p.rot);
+    ExtrinsicValue {
+        camera: camera.to_string(),
+        ref_from_cam: p.matrix(),
+        translation: [p.trans.x, p.trans.y, p.trans.z],
+        quaternion_wxyz: so3::to_quaternion(&p.rot),
+        rpy_deg: [r.to_degrees(), pi.to_degrees(), y.to_degrees()],
+    }
+}
+
+fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reason {
+    Reason { code: code.into(), message: message.into(), camera: camera.map(str::to_string) }
+}
+
+fn failed(session: &Session, reasons: Vec<Reason>, stages: Vec<Stage>) -> ResultDocument {
+    ResultDocument {
+        rigcal_version: env!("CARGO_PKG_VERSION").into(),
+        method: "motion".into(),
+        status: Status::Failed,
+        reasons,
+        reference_camera: session.cameras[session.reference].id.clone(),
+        extrinsics: vec![],
+        residuals: None,
+        singularity: None,
+        initialisation: vec![],
+        solver: None,
+        stages,
+    }
+}
+
+/// Run the motion method on a validated session.
+pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
+    let mut stages = Vec::new();
+    let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+    if session.manifest.method == Method::Vanishing {
+        return failed(session, vec![reason("method_not_supported", "the vanishing method is not available in this build yet; use method \"motion\"", None)], stages);
+    }
+    if session.cameras.len() < 2 {
+        return failed(session, vec![reason("too_few_cameras", "a rig calibration needs at least 2 cameras", None)], stages);
+    }
+    // Input sufficiency per camera, named.
+    let mut reasons = Vec::new();
+    for (c, id) in ids.iter().enumerate() {
+        let frames = session.frames.iter().filter(|f| f.observations[c].len() >= 4).count();
+        if frames == 0 {
+            reasons.push(reason("camera_not_observed", format!("camera {id} observes no target or point in any frame"), Some(id)));
+        } else if frames < 3 {
+            reasons.push(reason("too_few_motions", format!("camera {id} observes points in {frames} frame(s); at least 3 are needed"), Some(id)));
+        }
+    }
+    if !reasons.is_empty() {
+        return failed(session, reasons, stages);
+    }
+
+    let t = Instant::now();
+    let lm = LmOptions { loss: opts.rig_ba.loss, max_iterations: opts.rig_ba.max_iterations, ..LmOptions::default() };
+    let traj = match trajectory::estimate(session, &lm) {
+        Ok(t) => t,
+        Err(e) => return failed(session, vec![reason("detection_failed", e.to_string(), None)], stages),
+    };
+    stages.push(Stage { name: "trajectories".into(), seconds: t.elapsed().as_secs_f64() });
+    for (s, why) in &traj.failed_scenes {
+        let _ = s;
+        reasons.push(reason("scene_not_reconstructed", why.clone(), None));
+    }
+    for scene in &traj.scenes {
+        if !scene.poses.is_empty() && !scene.metric {
+            reasons.push(reason("scale_missing", "a scene of unknown geometry has no measured distance (scale[]): its scale comes from the rig motion only", None));
+            break;
+        }
+    }
+
+    let t = Instant::now();
+    let init = match initialise(session, &traj) {
+        Ok(i) => i,
+        Err(e) => {
+            let cam = match &e {
+                InitError::CameraNotObserved(c) | InitError::ReferenceNotObserved(c) => c.clone(),
+            };
+            reasons.push(reason("camera_not_observed", e.to_string(), Some(&cam)));
+            return failed(session, reasons, stages);
+        }
+    };
+    stages.push(Stage { name: "initialisation".into(), seconds: t.elapsed().as_secs_f64() });
+    let initialisation: Vec<ExtrinsicValue> = ids.iter().zip(&init.ref_from_cam).map(|(id, p)| extrinsic_value(id, p)).collect();
+
+    let t = Instant::now();
+    let ba = refine(session, &traj, &init, &opts.rig_ba);
+    stages.push(Stage { name: "rig_bundle_adjustment".into(), seconds: t.elapsed().as_secs_f64() });
+
+    let t = Instant::now();
+    let obs = observability(&ba);
+    let residuals = residual_report(session, &ba);
+    let mut extrinsics = Vec::new();
+    let mut per_camera = Vec::new();
+    for (c, id) in ids.iter().enumerate() {
+        let value = extrinsic_value(id, &ba.problem.rig_from_cam[c]);
+        let slot = obs.as_ref().and_then(|o| o.cams.iter().position(|x| *x == c));
+        let (sig_t, sig_r, dof, eig) = match (&obs, slot) {
+            (Some(o), Some(i)) => {
+                let cov = &o.cov[i].1;
+                let st = [0, 1, 2].map(|a| (!axis_unobservable(&o.null, 6 * i, a)).then(|| cov[(a, a)].max(0.0).sqrt()));
+                let sr = [0, 1, 2].map(|a| (!axis_unobservable(&o.null, 6 * i + 3, a)).then(|| cov[(a + 3, a + 3)].max(0.0).sqrt().to_degrees()));
+                let dof = ObservableDof { translation: 3 - lost_dof(&o.null, 6 * i), rotation: 3 - lost_dof(&o.null, 6 * i + 3) };
+                (st, sr, dof, o.per_camera_eigen[i].clone())
+            }
+            // The reference camera defines the frame: exact by definition.
+            _ if c == session.reference => ([Some(0.0); 3], [Some(0.0); 3], ObservableDof { rotation: 3, translation: 3 }, vec![]),
+            _ => ([None; 3], [None; 3], ObservableDof { rotation: 0, translation: 0 }, vec![]),
+        };
+        per_camera.push(CameraObservability { camera: id.to_string(), observable_dof: dof.clone(), information_eigenvalues: eig });
+        extrinsics.push(Extrinsic { value, sigma_translation_m: sig_t, sigma_rotation_deg: sig_r, observable_dof: dof });
+    }
+
+    let mut unobservable_directions = Vec::new();
+    if let Some(o) = &obs {
+        for (v, s) in &o.null {
+            let components: Vec<DirectionComponent> = o
+                .cams
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| (0..6).any(|k| v[6 * i + k].abs() > 1e-3))
+                .map(|(i, c)| DirectionComponent {
+                    camera: ids[*c].to_string(),
+                    translation: [v[6 * i], v[6 * i + 1], v[6 * i + 2]],
+                    rotation: [v[6 * i + 3], v[6 * i + 4], v[6 * i + 5]],
+                })
+                .collect();
+            let names: Vec<&str> = components.iter().filter(|c| c.translation.iter().chain(&c.rotation).any(|x| x.abs() > 0.1)).map(|c| c.camera.as_str()).collect();
+            let trans = components.iter().map(|c| c.translation.iter().map(|x| x * x).sum::<f64>()).sum::<f64>();
+            let kind = if trans > 0.5 { "translation" } else { "rotation" };
+            let description = if names.len() > 1 {
+                format!("a {kind} shared by cameras {} relative to {}: they can move together without changing any observation", names.join(", "), ids[session.reference])
+            } else {
+                format!("a {kind} of camera {} relative to {} that no observation constrains", names.join(", "), ids[session.reference])
+            };
+            unobservable_directions.push(UnobservableDirection { components, sigma: *s, description });
+        }
+    }
+
+    // Verdict and recommendations.
+    let class = init.motion.class;
+    let any_null = !unobservable_directions.is_empty();
+    let mut recommendations = Vec::new();
+    let mut resolved_by = Vec::new();
+    if init.permutation {
+        resolved_by.push("scene_permutation".to_string());
+    }
+    match class {
+        MotionClass::PureTranslation => {
+            reasons.push(reason("pure_translation", "the rig never rotated: the extrinsic translations are unobservable", None));
+            recommendations.push("Turn the vehicle while capturing (rotations about at least two different axes, e.g. turns and a speed bump).".into());
+        }
+        MotionClass::SingleAxis => {
+            reasons.push(reason("single_axis_rotation", "the rig rotated about a single fixed axis: one rotation and one translation DOF per camera cannot be determined", None));
+            recommendations.push("Add motion about a second axis: drive along a path (not a turn in place) and over a bump or ramp.".into());
+        }
+        MotionClass::None => reasons.push(reason("too_few_motions", "the rig did not move", None)),
+        _ => {}
+    }
+    if any_null {
+        let cams: Vec<String> = unobservable_directions.iter().flat_map(|d| d.components.iter().map(|c| c.camera.clone())).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
+        if class == MotionClass::Planar {
+            reasons.push(reason("planar_motion", format!("planar motion: the height of {} relative to {} along the plane normal is not observable", cams.join(", "), ids[session.reference]), None));
+            let src = init.height_source.unwrap_or("zero");
+            let has_prior = cams.iter().any(|c| session.camera_index(c).is_some_and(|i| session.height_priors[i].is_some()));
+            resolved_by.push(if has_prior || src == "prior" { "prior".into() } else { "none".into() });
+            recommendations.push(format!(
+                "Drive over a speed bump or ramp (any non-planar motion) so the height of {} becomes observable, or turn so that {} see(s) the scene of a camera whose height is known (a full 360° loop shows every scene to every camera); a U-turn alone only swaps front↔rear and left↔right.",
+                cams.join(", "),
+                cams.join(", ")
+            ));
+            if !has_prior {
+                recommendations.push(format!("Or give priors.height_offsets for {} (measured on the vehicle); until then the height is held at the linear initialisation (0).", cams.join(", ")));
+            }
+        } else if !matches!(class, MotionClass::PureTranslation | MotionClass::SingleAxis) {
+            reasons.push(reason("poorly_determined", format!("some extrinsic directions of {} are not determined by the data", cams.join(", ")), None));
+            recommendations.push("Capture more varied motion: larger rotations about different axes.".into());
+        }
+    }
+    if !ba.summary.converged {
+        reasons.push(reason("no_convergence", format!("the rig bundle adjustment stopped: {}", ba.summary.termination), None));
+    }
+    if !ba.outliers.is_empty() {
+        reasons.push(reason("outliers_removed", format!("{} observations rejected as outliers", ba.outliers.len()), None));
+    }
+    let fatal = reasons.iter().any(|r| matches!(r.code.as_str(), "pure_translation" | "too_few_motions" | "no_convergence" | "camera_not_observed"));
+    let degrading = reasons.iter().any(|r| !matches!(r.code.as_str(), "outliers_removed")) || any_null;
+    let status = if fatal {
+        Status::Failed
+    } else if degrading {
+        Status::Degraded
+    } else {
+        Status::Succeeded
+    };
+    stages.push(Stage { name: "diagnostics".into(), seconds: t.elapsed().as_secs_f64() });
+
+    let m = &init.motion;
+    ResultDocument {
+        rigcal_version: env!("CARGO_PKG_VERSION").into(),
+        method: "motion".into(),
+        status,
+        reasons,
+        reference_camera: ids[session.reference].to_string(),
+        extrinsics,
+        residuals: Some(residuals),
+        singularity: Some(Singularity {
+            motion_class: class.as_str().into(),
+            axis: m.axis,
+            motions: m.motions,
+            informative_motions: m.informative_motions,
+            max_rotation_deg: m.max_rotation_deg,
+            max_out_of_axis_deg: m.max_out_of_axis_deg,
+            scene_permutation: init.permutation,
+            motion_pairs_used: init.pairs_used,
+            motion_pairs_dropped_small_rotation: init.pairs_dropped_small,
+            motion_pairs_dropped_near_180: init.pairs_dropped_near_180,
+            per_camera,
+            unobservable_directions,
+            resolved_by,
+            recommendations,
+        }),
+        initialisation,
+        solver: Some(SolverReport {
+            iterations: ba.summary.iterations,
+            initial_cost: ba.summary.initial_cost,
+            final_cost: ba.summary.final_cost,
+            converged: ba.summary.converged,
+            termination: ba.summary.termination.clone(),
+        }),
+        stages,
+    }
+}
