@@ -21,7 +21,9 @@ impl std::str::FromStr for Format {
             "kalibr" => Ok(Format::Kalibr),
             "opencv" => Ok(Format::Opencv),
             "urdf" => Ok(Format::Urdf),
-            _ => Err(format!("format: one of json, kalibr, opencv, urdf, got {s:?}")),
+            _ => Err(format!(
+                "format: one of json, kalibr, opencv, urdf, got {s:?}"
+            )),
         }
     }
 }
@@ -29,12 +31,25 @@ impl std::str::FromStr for Format {
 fn pose_of(doc: &ResultDocument, cam: &str) -> Option<crate::geometry::Pose> {
     let e = doc.extrinsics.iter().find(|e| e.value.camera == cam)?;
     let m = e.value.ref_from_cam;
-    let rot = nalgebra::Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]);
-    Some(crate::geometry::Pose::new(rot, nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3])))
+    let rot = nalgebra::Matrix3::new(
+        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+    );
+    Some(crate::geometry::Pose::new(
+        rot,
+        nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
+    ))
 }
 
 fn matrix_rows(p: &crate::geometry::Pose, indent: &str) -> String {
-    p.matrix().iter().map(|r| format!("{indent}- [{:.12}, {:.12}, {:.12}, {:.12}]\n", r[0], r[1], r[2], r[3])).collect()
+    p.matrix()
+        .iter()
+        .map(|r| {
+            format!(
+                "{indent}- [{:.12}, {:.12}, {:.12}, {:.12}]\n",
+                r[0], r[1], r[2], r[3]
+            )
+        })
+        .collect()
 }
 
 /// Render `doc` in `format`; `None` if the document has no extrinsics to export.
@@ -56,8 +71,12 @@ pub fn render(doc: &ResultDocument, session: &Session, format: Format) -> Option
                 let k = &c.camera;
                 let (cm, dm, coeffs) = match k.model {
                     crate::geometry::CameraModel::Pinhole => ("pinhole", "radtan", vec![0.0; 4]),
-                    crate::geometry::CameraModel::Radtan { .. } => ("pinhole", "radtan", k.model.coefficients()[..4].to_vec()),
-                    crate::geometry::CameraModel::Equidistant { .. } => ("pinhole", "equidistant", k.model.coefficients()),
+                    crate::geometry::CameraModel::Radtan { .. } => {
+                        ("pinhole", "radtan", k.model.coefficients()[..4].to_vec())
+                    }
+                    crate::geometry::CameraModel::Equidistant { .. } => {
+                        ("pinhole", "equidistant", k.model.coefficients())
+                    }
                 };
                 out.push_str(&format!("cam{i}:\n  rostopic: /{}/image_raw\n  camera_model: {cm}\n  distortion_model: {dm}\n", c.id));
                 out.push_str(&format!("  distortion_coeffs: {coeffs:?}\n  intrinsics: [{}, {}, {}, {}]\n  resolution: [{}, {}]\n", k.fx, k.fy, k.cx, k.cy, k.width, k.height));

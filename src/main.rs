@@ -10,7 +10,11 @@ use rigcal::solver::Loss;
 use std::path::PathBuf;
 
 #[derive(Parser)]
-#[command(name = "rigcal", version, about = "Extrinsic calibration of multi-camera rigs with non-overlapping fields of view")]
+#[command(
+    name = "rigcal",
+    version,
+    about = "Extrinsic calibration of multi-camera rigs with non-overlapping fields of view"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -61,17 +65,29 @@ fn main() {
 
 fn run() -> Result<i32> {
     match Cli::parse().command {
-        Command::Calibrate { session, format, loss, loss_scale } => {
-            let bytes = std::fs::read(&session).with_context(|| format!("reading {}", session.display()))?;
+        Command::Calibrate {
+            session,
+            format,
+            loss,
+            loss_scale,
+        } => {
+            let bytes = std::fs::read(&session)
+                .with_context(|| format!("reading {}", session.display()))?;
             let session = parse_session(&bytes).map_err(|e| anyhow!("{}: {e}", "session"))?;
             if !(loss_scale.is_finite() && loss_scale > 0.0) {
-                return Err(anyhow!("--loss-scale: a positive number of pixels, got {loss_scale}"));
+                return Err(anyhow!(
+                    "--loss-scale: a positive number of pixels, got {loss_scale}"
+                ));
             }
             let loss = match loss.as_str() {
                 "huber" => Loss::Huber { scale: loss_scale },
                 "cauchy" => Loss::Cauchy { scale: loss_scale },
                 "squared" => Loss::Squared,
-                other => return Err(anyhow!("--loss: one of huber, cauchy, squared, got {other:?}")),
+                other => {
+                    return Err(anyhow!(
+                        "--loss: one of huber, cauchy, squared, got {other:?}"
+                    ))
+                }
             };
             let mut opts = CalibOptions::default();
             opts.rig_ba.loss = loss;
@@ -85,30 +101,63 @@ fn run() -> Result<i32> {
             }
             Ok(doc.exit_code())
         }
-        Command::Synth { preset, seed, noise, out } => {
+        Command::Synth {
+            preset,
+            seed,
+            noise,
+            out,
+        } => {
             if !(noise.is_finite() && noise >= 0.0) {
                 return Err(anyhow!("--noise: a non-negative pixel σ, got {noise}"));
             }
-            let (session, truth) = rigcal::synth::generate(&preset, seed, noise).ok_or_else(|| anyhow!("--preset: one of {}, got {preset:?}", rigcal::synth::PRESETS.join(", ")))?;
+            let (session, truth) =
+                rigcal::synth::generate(&preset, seed, noise).ok_or_else(|| {
+                    anyhow!(
+                        "--preset: one of {}, got {preset:?}",
+                        rigcal::synth::PRESETS.join(", ")
+                    )
+                })?;
             std::fs::create_dir_all(&out)?;
-            std::fs::write(out.join("session.json"), serde_json::to_string_pretty(&session)?)?;
-            std::fs::write(out.join("truth.json"), serde_json::to_string_pretty(&truth)?)?;
-            eprintln!("wrote {} and {}", out.join("session.json").display(), out.join("truth.json").display());
+            std::fs::write(
+                out.join("session.json"),
+                serde_json::to_string_pretty(&session)?,
+            )?;
+            std::fs::write(
+                out.join("truth.json"),
+                serde_json::to_string_pretty(&truth)?,
+            )?;
+            eprintln!(
+                "wrote {} and {}",
+                out.join("session.json").display(),
+                out.join("truth.json").display()
+            );
             Ok(0)
         }
         Command::Compare { result, truth } => {
-            let doc: rigcal::result::ResultDocument = serde_json::from_slice(&std::fs::read(&result)?).context("result document")?;
-            let truth: rigcal::synth::Truth = serde_json::from_slice(&std::fs::read(&truth)?).context("truth")?;
+            let doc: rigcal::result::ResultDocument =
+                serde_json::from_slice(&std::fs::read(&result)?).context("result document")?;
+            let truth: rigcal::synth::Truth =
+                serde_json::from_slice(&std::fs::read(&truth)?).context("truth")?;
             println!("{:<10} {:>14} {:>14}", "camera", "dt (mm)", "dR (deg)");
             for e in &doc.extrinsics {
-                let Some(t) = truth.ref_from_cam.get(&e.value.camera) else { continue };
+                let Some(t) = truth.ref_from_cam.get(&e.value.camera) else {
+                    continue;
+                };
                 let m = e.value.ref_from_cam;
                 let est = rigcal::geometry::Pose::new(
-                    nalgebra::Matrix3::new(m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2]),
+                    nalgebra::Matrix3::new(
+                        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1],
+                        m[2][2],
+                    ),
                     nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
                 );
                 let (dr, dt) = est.distance(t);
-                println!("{:<10} {:>14.4} {:>14.5}", e.value.camera, dt * 1e3, dr.to_degrees());
+                println!(
+                    "{:<10} {:>14.4} {:>14.5}",
+                    e.value.camera,
+                    dt * 1e3,
+                    dr.to_degrees()
+                );
             }
             Ok(0)
         }

@@ -30,7 +30,11 @@ pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
 }
 
 fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reason {
-    Reason { code: code.into(), message: message.into(), camera: camera.map(str::to_string) }
+    Reason {
+        code: code.into(),
+        message: message.into(),
+        camera: camera.map(str::to_string),
+    }
 }
 
 fn failed(session: &Session, reasons: Vec<Reason>, stages: Vec<Stage>) -> ResultDocument {
@@ -54,19 +58,47 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     let mut stages = Vec::new();
     let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
     if session.manifest.method == Method::Vanishing {
-        return failed(session, vec![reason("method_not_supported", "the vanishing method is not available in this build yet; use method \"motion\"", None)], stages);
+        return failed(
+            session,
+            vec![reason(
+                "method_not_supported",
+                "the vanishing method is not available in this build yet; use method \"motion\"",
+                None,
+            )],
+            stages,
+        );
     }
     if session.cameras.len() < 2 {
-        return failed(session, vec![reason("too_few_cameras", "a rig calibration needs at least 2 cameras", None)], stages);
+        return failed(
+            session,
+            vec![reason(
+                "too_few_cameras",
+                "a rig calibration needs at least 2 cameras",
+                None,
+            )],
+            stages,
+        );
     }
     // Input sufficiency per camera, named.
     let mut reasons = Vec::new();
     for (c, id) in ids.iter().enumerate() {
-        let frames = session.frames.iter().filter(|f| f.observations[c].len() >= 4).count();
+        let frames = session
+            .frames
+            .iter()
+            .filter(|f| f.observations[c].len() >= 4)
+            .count();
         if frames == 0 {
-            reasons.push(reason("camera_not_observed", format!("camera {id} observes no target or point in any frame"), Some(id)));
+            reasons.push(reason(
+                "camera_not_observed",
+                format!("camera {id} observes no target or point in any frame"),
+                Some(id),
+            ));
         } else if frames < 3 {
-            reasons.push(reason("too_few_motions", format!("camera {id} observes points in {frames} frame(s); at least 3 are needed"), Some(id)));
+            reasons.push(reason(
+                "too_few_motions",
+                format!("camera {id} observes points in {frames} frame(s); at least 3 are needed"),
+                Some(id),
+            ));
         }
     }
     if !reasons.is_empty() {
@@ -74,12 +106,25 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     }
 
     let t = Instant::now();
-    let lm = LmOptions { loss: opts.rig_ba.loss, max_iterations: opts.rig_ba.max_iterations, ..LmOptions::default() };
+    let lm = LmOptions {
+        loss: opts.rig_ba.loss,
+        max_iterations: opts.rig_ba.max_iterations,
+        ..LmOptions::default()
+    };
     let traj = match trajectory::estimate(session, &lm) {
         Ok(t) => t,
-        Err(e) => return failed(session, vec![reason("detection_failed", e.to_string(), None)], stages),
+        Err(e) => {
+            return failed(
+                session,
+                vec![reason("detection_failed", e.to_string(), None)],
+                stages,
+            )
+        }
     };
-    stages.push(Stage { name: "trajectories".into(), seconds: t.elapsed().as_secs_f64() });
+    stages.push(Stage {
+        name: "trajectories".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
     for (s, why) in &traj.failed_scenes {
         let _ = s;
         reasons.push(reason("scene_not_reconstructed", why.clone(), None));
@@ -102,12 +147,22 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
             return failed(session, reasons, stages);
         }
     };
-    stages.push(Stage { name: "initialisation".into(), seconds: t.elapsed().as_secs_f64() });
-    let initialisation: Vec<ExtrinsicValue> = ids.iter().zip(&init.ref_from_cam).map(|(id, p)| extrinsic_value(id, p)).collect();
+    stages.push(Stage {
+        name: "initialisation".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
+    let initialisation: Vec<ExtrinsicValue> = ids
+        .iter()
+        .zip(&init.ref_from_cam)
+        .map(|(id, p)| extrinsic_value(id, p))
+        .collect();
 
     let t = Instant::now();
     let ba = refine(session, &traj, &init, &opts.rig_ba);
-    stages.push(Stage { name: "rig_bundle_adjustment".into(), seconds: t.elapsed().as_secs_f64() });
+    stages.push(Stage {
+        name: "rig_bundle_adjustment".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
 
     let t = Instant::now();
     let obs = observability(&ba);
@@ -116,21 +171,56 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     let mut per_camera = Vec::new();
     for (c, id) in ids.iter().enumerate() {
         let value = extrinsic_value(id, &ba.problem.rig_from_cam[c]);
-        let slot = obs.as_ref().and_then(|o| o.cams.iter().position(|x| *x == c));
+        let slot = obs
+            .as_ref()
+            .and_then(|o| o.cams.iter().position(|x| *x == c));
         let (sig_t, sig_r, dof, eig) = match (&obs, slot) {
             (Some(o), Some(i)) => {
                 let cov = &o.cov[i].1;
-                let st = [0, 1, 2].map(|a| (!axis_unobservable(&o.null, 6 * i, a)).then(|| cov[(a, a)].max(0.0).sqrt()));
-                let sr = [0, 1, 2].map(|a| (!axis_unobservable(&o.null, 6 * i + 3, a)).then(|| cov[(a + 3, a + 3)].max(0.0).sqrt().to_degrees()));
-                let dof = ObservableDof { translation: 3 - lost_dof(&o.null, 6 * i), rotation: 3 - lost_dof(&o.null, 6 * i + 3) };
+                let st = [0, 1, 2].map(|a| {
+                    (!axis_unobservable(&o.null, 6 * i, a)).then(|| cov[(a, a)].max(0.0).sqrt())
+                });
+                let sr = [0, 1, 2].map(|a| {
+                    (!axis_unobservable(&o.null, 6 * i + 3, a))
+                        .then(|| cov[(a + 3, a + 3)].max(0.0).sqrt().to_degrees())
+                });
+                let dof = ObservableDof {
+                    translation: 3 - lost_dof(&o.null, 6 * i),
+                    rotation: 3 - lost_dof(&o.null, 6 * i + 3),
+                };
                 (st, sr, dof, o.per_camera_eigen[i].clone())
             }
             // The reference camera defines the frame: exact by definition.
-            _ if c == session.reference => ([Some(0.0); 3], [Some(0.0); 3], ObservableDof { rotation: 3, translation: 3 }, vec![]),
-            _ => ([None; 3], [None; 3], ObservableDof { rotation: 0, translation: 0 }, vec![]),
+            _ if c == session.reference => (
+                [Some(0.0); 3],
+                [Some(0.0); 3],
+                ObservableDof {
+                    rotation: 3,
+                    translation: 3,
+                },
+                vec![],
+            ),
+            _ => (
+                [None; 3],
+                [None; 3],
+                ObservableDof {
+                    rotation: 0,
+                    translation: 0,
+                },
+                vec![],
+            ),
         };
-        per_camera.push(CameraObservability { camera: id.to_string(), observable_dof: dof.clone(), information_eigenvalues: eig });
-        extrinsics.push(Extrinsic { value, sigma_translation_m: sig_t, sigma_rotation_deg: sig_r, observable_dof: dof });
+        per_camera.push(CameraObservability {
+            camera: id.to_string(),
+            observable_dof: dof.clone(),
+            information_eigenvalues: eig,
+        });
+        extrinsics.push(Extrinsic {
+            value,
+            sigma_translation_m: sig_t,
+            sigma_rotation_deg: sig_r,
+            observable_dof: dof,
+        });
     }
 
     let mut unobservable_directions = Vec::new();
@@ -147,15 +237,39 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
                     rotation: [v[6 * i + 3], v[6 * i + 4], v[6 * i + 5]],
                 })
                 .collect();
-            let names: Vec<&str> = components.iter().filter(|c| c.translation.iter().chain(&c.rotation).any(|x| x.abs() > 0.1)).map(|c| c.camera.as_str()).collect();
-            let trans = components.iter().map(|c| c.translation.iter().map(|x| x * x).sum::<f64>()).sum::<f64>();
-            let kind = if trans > 0.5 { "translation" } else { "rotation" };
+            let names: Vec<&str> = components
+                .iter()
+                .filter(|c| {
+                    c.translation
+                        .iter()
+                        .chain(&c.rotation)
+                        .any(|x| x.abs() > 0.1)
+                })
+                .map(|c| c.camera.as_str())
+                .collect();
+            let trans = components
+                .iter()
+                .map(|c| c.translation.iter().map(|x| x * x).sum::<f64>())
+                .sum::<f64>();
+            let kind = if trans > 0.5 {
+                "translation"
+            } else {
+                "rotation"
+            };
             let description = if names.len() > 1 {
                 format!("a {kind} shared by cameras {} relative to {}: they can move together without changing any observation", names.join(", "), ids[session.reference])
             } else {
-                format!("a {kind} of camera {} relative to {} that no observation constrains", names.join(", "), ids[session.reference])
+                format!(
+                    "a {kind} of camera {} relative to {} that no observation constrains",
+                    names.join(", "),
+                    ids[session.reference]
+                )
             };
-            unobservable_directions.push(UnobservableDirection { components, sigma: *s, description });
+            unobservable_directions.push(UnobservableDirection {
+                components,
+                sigma: *s,
+                description,
+            });
         }
     }
 
@@ -169,7 +283,11 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     }
     match class {
         MotionClass::PureTranslation => {
-            reasons.push(reason("pure_translation", "the rig never rotated: the extrinsic translations are unobservable", None));
+            reasons.push(reason(
+                "pure_translation",
+                "the rig never rotated: the extrinsic translations are unobservable",
+                None,
+            ));
             recommendations.push("Turn the vehicle while capturing (rotations about at least two different axes, e.g. turns and a speed bump).".into());
         }
         MotionClass::SingleAxis => {
@@ -180,12 +298,25 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         _ => {}
     }
     if any_null {
-        let cams: Vec<String> = unobservable_directions.iter().flat_map(|d| d.components.iter().map(|c| c.camera.clone())).collect::<std::collections::BTreeSet<_>>().into_iter().collect();
+        let cams: Vec<String> = unobservable_directions
+            .iter()
+            .flat_map(|d| d.components.iter().map(|c| c.camera.clone()))
+            .collect::<std::collections::BTreeSet<_>>()
+            .into_iter()
+            .collect();
         if class == MotionClass::Planar {
             reasons.push(reason("planar_motion", format!("planar motion: the height of {} relative to {} along the plane normal is not observable", cams.join(", "), ids[session.reference]), None));
             let src = init.height_source.unwrap_or("zero");
-            let has_prior = cams.iter().any(|c| session.camera_index(c).is_some_and(|i| session.height_priors[i].is_some()));
-            resolved_by.push(if has_prior || src == "prior" { "prior".into() } else { "none".into() });
+            let has_prior = cams.iter().any(|c| {
+                session
+                    .camera_index(c)
+                    .is_some_and(|i| session.height_priors[i].is_some())
+            });
+            resolved_by.push(if has_prior || src == "prior" {
+                "prior".into()
+            } else {
+                "none".into()
+            });
             recommendations.push(format!(
                 "Drive over a speed bump or ramp (any non-planar motion) so the height of {} becomes observable, or turn so that {} see(s) the scene of a camera whose height is known (a full 360° loop shows every scene to every camera); a U-turn alone only swaps front↔rear and left↔right.",
                 cams.join(", "),
@@ -194,19 +325,49 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
             if !has_prior {
                 recommendations.push(format!("Or give priors.height_offsets for {} (measured on the vehicle); until then the height is held at the linear initialisation (0).", cams.join(", ")));
             }
-        } else if !matches!(class, MotionClass::PureTranslation | MotionClass::SingleAxis) {
-            reasons.push(reason("poorly_determined", format!("some extrinsic directions of {} are not determined by the data", cams.join(", ")), None));
-            recommendations.push("Capture more varied motion: larger rotations about different axes.".into());
+        } else if !matches!(
+            class,
+            MotionClass::PureTranslation | MotionClass::SingleAxis
+        ) {
+            reasons.push(reason(
+                "poorly_determined",
+                format!(
+                    "some extrinsic directions of {} are not determined by the data",
+                    cams.join(", ")
+                ),
+                None,
+            ));
+            recommendations
+                .push("Capture more varied motion: larger rotations about different axes.".into());
         }
     }
     if !ba.summary.converged {
-        reasons.push(reason("no_convergence", format!("the rig bundle adjustment stopped: {}", ba.summary.termination), None));
+        reasons.push(reason(
+            "no_convergence",
+            format!(
+                "the rig bundle adjustment stopped: {}",
+                ba.summary.termination
+            ),
+            None,
+        ));
     }
     if !ba.outliers.is_empty() {
-        reasons.push(reason("outliers_removed", format!("{} observations rejected as outliers", ba.outliers.len()), None));
+        reasons.push(reason(
+            "outliers_removed",
+            format!("{} observations rejected as outliers", ba.outliers.len()),
+            None,
+        ));
     }
-    let fatal = reasons.iter().any(|r| matches!(r.code.as_str(), "pure_translation" | "too_few_motions" | "no_convergence" | "camera_not_observed"));
-    let degrading = reasons.iter().any(|r| !matches!(r.code.as_str(), "outliers_removed")) || any_null;
+    let fatal = reasons.iter().any(|r| {
+        matches!(
+            r.code.as_str(),
+            "pure_translation" | "too_few_motions" | "no_convergence" | "camera_not_observed"
+        )
+    });
+    let degrading = reasons
+        .iter()
+        .any(|r| !matches!(r.code.as_str(), "outliers_removed"))
+        || any_null;
     let status = if fatal {
         Status::Failed
     } else if degrading {
@@ -214,7 +375,10 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     } else {
         Status::Succeeded
     };
-    stages.push(Stage { name: "diagnostics".into(), seconds: t.elapsed().as_secs_f64() });
+    stages.push(Stage {
+        name: "diagnostics".into(),
+        seconds: t.elapsed().as_secs_f64(),
+    });
 
     let m = &init.motion;
     ResultDocument {

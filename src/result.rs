@@ -67,7 +67,13 @@ impl Stats {
         let mut v = values.to_vec();
         v.sort_by(f64::total_cmp);
         let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
-        Stats { count: v.len(), rms: (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt(), median: q(0.5), p95: q(0.95), max: v[v.len() - 1] }
+        Stats {
+            count: v.len(),
+            rms: (v.iter().map(|x| x * x).sum::<f64>() / v.len() as f64).sqrt(),
+            median: q(0.5),
+            p95: q(0.95),
+            max: v[v.len() - 1],
+        }
     }
 }
 

@@ -5,14 +5,24 @@
 //! and measures a few distances per scene with 0.5 mm noise (Lébraly §5.1).
 
 use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
-use crate::session::{CameraSpec, FrameSpec, Intrinsics, ObservationSpec, ScaleSpec, SessionManifest};
+use crate::session::{
+    CameraSpec, FrameSpec, Intrinsics, ObservationSpec, ScaleSpec, SessionManifest,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
-pub const PRESETS: &[&str] = &["lebraly-5.1", "car-planar-uturn", "car-planar", "car-planar-loop", "car-bump", "pure-translation", "single-axis"];
+pub const PRESETS: &[&str] = &[
+    "lebraly-5.1",
+    "car-planar-uturn",
+    "car-planar",
+    "car-planar-loop",
+    "car-bump",
+    "pure-translation",
+    "single-axis",
+];
 
 /// The ground truth written next to a synthetic session.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -48,14 +58,28 @@ fn look(dir: Vec3, pitch: f64) -> nalgebra::Matrix3<f64> {
 }
 
 /// Points in front of camera `world_from_cam`, inside the central part of its view.
-fn scene_points(rng: &mut ChaCha8Rng, name: &str, cam: &Camera, world_from_cam: &Pose, n: usize, depth: (f64, f64), fill: f64) -> Vec<(String, Vec3)> {
-    let (hx, hy) = ((cam.width as f64 / 2.0) / cam.fx, (cam.height as f64 / 2.0) / cam.fy);
+fn scene_points(
+    rng: &mut ChaCha8Rng,
+    name: &str,
+    cam: &Camera,
+    world_from_cam: &Pose,
+    n: usize,
+    depth: (f64, f64),
+    fill: f64,
+) -> Vec<(String, Vec3)> {
+    let (hx, hy) = (
+        (cam.width as f64 / 2.0) / cam.fx,
+        (cam.height as f64 / 2.0) / cam.fy,
+    );
     (0..n)
         .map(|i| {
             let z = rng.gen_range(depth.0..depth.1);
             let x = rng.gen_range(-1.0..1.0) * hx * fill * z;
             let y = rng.gen_range(-1.0..1.0) * hy * fill * z;
-            (format!("{name}:{i:02}"), world_from_cam.apply(&Vec3::new(x, y, z)))
+            (
+                format!("{name}:{i:02}"),
+                world_from_cam.apply(&Vec3::new(x, y, z)),
+            )
         })
         .collect()
 }
@@ -84,27 +108,66 @@ fn far_pairs(points: &[(String, Vec3)], count: usize) -> Vec<(usize, usize)> {
 }
 
 fn planar_pose(x: f64, y: f64, yaw_deg: f64) -> Pose {
-    Pose::new(so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())), Vec3::new(x, y, 0.0))
+    Pose::new(
+        so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())),
+        Vec3::new(x, y, 0.0),
+    )
 }
 
 fn lebraly(rng: &mut ChaCha8Rng) -> Scenario {
     let cam = Camera::pinhole(1273.0, 1273.0, 799.5, 599.5, 1600, 1200);
-    let ext = Pose::new(so3::from_rpy(-179f64.to_radians(), -4f64.to_radians(), 171f64.to_radians()), Vec3::new(0.1, 0.1, -2.0));
-    let cameras = vec![("cam1".to_string(), cam.clone(), Pose::identity()), ("cam2".to_string(), cam.clone(), ext)];
+    let ext = Pose::new(
+        so3::from_rpy(
+            -179f64.to_radians(),
+            -4f64.to_radians(),
+            171f64.to_radians(),
+        ),
+        Vec3::new(0.1, 0.1, -2.0),
+    );
+    let cameras = vec![
+        ("cam1".to_string(), cam.clone(), Pose::identity()),
+        ("cam2".to_string(), cam.clone(), ext),
+    ];
     // 10 rig poses, general 3D motion: rotations of 5–12° about random axes.
     let mut world_from_vehicle = vec![Pose::identity()];
     while world_from_vehicle.len() < 10 {
-        let axis = Vec3::new(rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0), rng.gen_range(-1.0..1.0)).normalize();
+        let axis = Vec3::new(
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+            rng.gen_range(-1.0..1.0),
+        )
+        .normalize();
         let angle = rng.gen_range(5.0f64..12.0).to_radians();
-        let t = Vec3::new(rng.gen_range(-0.15..0.15), rng.gen_range(-0.15..0.15), rng.gen_range(-0.15..0.15));
+        let t = Vec3::new(
+            rng.gen_range(-0.15..0.15),
+            rng.gen_range(-0.15..0.15),
+            rng.gen_range(-0.15..0.15),
+        );
         world_from_vehicle.push(Pose::from_rotvec(axis * angle, t));
     }
     let scenes = cameras
         .iter()
-        .map(|(name, cam, v_from_c)| scene_points(rng, &format!("s-{name}"), cam, v_from_c, 11, (0.8, 1.3), 0.45))
+        .map(|(name, cam, v_from_c)| {
+            scene_points(
+                rng,
+                &format!("s-{name}"),
+                cam,
+                v_from_c,
+                11,
+                (0.8, 1.3),
+                0.45,
+            )
+        })
         .collect::<Vec<_>>();
     let scale_pairs = scenes.iter().map(|s| far_pairs(s, 2)).collect();
-    Scenario { preset: "lebraly-5.1".into(), motion: "general", cameras, world_from_vehicle, scenes, scale_pairs }
+    Scenario {
+        preset: "lebraly-5.1".into(),
+        motion: "general",
+        cameras,
+        world_from_vehicle,
+        scenes,
+        scale_pairs,
+    }
 }
 
 fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
@@ -112,19 +175,57 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
     // Vehicle frame: x forward, y left, z up. The rig is symmetric about x = 0.5 so a
     // U-turn about that point swaps front↔rear and left↔right.
     let mounts = [
-        ("front", Vec3::new(2.0, 0.0, 1.3), Vec3::new(1.0, 0.0, 0.0), 0.12),
-        ("rear", Vec3::new(-1.0, 0.05, 1.0), Vec3::new(-1.0, 0.0, 0.0), 0.1),
-        ("left", Vec3::new(0.5, 0.9, 1.1), Vec3::new(0.0, 1.0, 0.0), 0.25),
-        ("right", Vec3::new(0.5, -0.9, 1.15), Vec3::new(0.0, -1.0, 0.0), 0.2),
+        (
+            "front",
+            Vec3::new(2.0, 0.0, 1.3),
+            Vec3::new(1.0, 0.0, 0.0),
+            0.12,
+        ),
+        (
+            "rear",
+            Vec3::new(-1.0, 0.05, 1.0),
+            Vec3::new(-1.0, 0.0, 0.0),
+            0.1,
+        ),
+        (
+            "left",
+            Vec3::new(0.5, 0.9, 1.1),
+            Vec3::new(0.0, 1.0, 0.0),
+            0.25,
+        ),
+        (
+            "right",
+            Vec3::new(0.5, -0.9, 1.15),
+            Vec3::new(0.0, -1.0, 0.0),
+            0.2,
+        ),
     ];
-    let cameras: Vec<(String, Camera, Pose)> = mounts.iter().map(|(n, p, d, pitch)| (n.to_string(), cam.clone(), Pose::new(look(*d, *pitch), *p))).collect();
+    let cameras: Vec<(String, Camera, Pose)> = mounts
+        .iter()
+        .map(|(n, p, d, pitch)| (n.to_string(), cam.clone(), Pose::new(look(*d, *pitch), *p)))
+        .collect();
     let mut poses: Vec<Pose> = Vec::new();
     let local = |rng: &mut ChaCha8Rng, n: usize| -> Vec<Pose> {
-        (0..n).map(|k| if k == 0 { Pose::identity() } else { planar_pose(rng.gen_range(-0.8..0.8), rng.gen_range(-0.4..0.4), rng.gen_range(-14.0..14.0)) }).collect()
+        (0..n)
+            .map(|k| {
+                if k == 0 {
+                    Pose::identity()
+                } else {
+                    planar_pose(
+                        rng.gen_range(-0.8..0.8),
+                        rng.gen_range(-0.4..0.4),
+                        rng.gen_range(-14.0..14.0),
+                    )
+                }
+            })
+            .collect()
     };
     let about_centre = |p: &Pose, yaw_deg: f64| -> Pose {
         let c = Vec3::new(0.5, 0.0, 0.0);
-        let turn = Pose::new(so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())), c - so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())) * c);
+        let turn = Pose::new(
+            so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())),
+            c - so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())) * c,
+        );
         turn * *p
     };
     let motion = match preset {
@@ -135,44 +236,100 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
         "car-bump" => {
             poses = local(rng, 12);
             // One speed bump: the car pitches 3° and rises 8 cm at one pose.
-            poses.push(Pose::new(so3::exp(&Vec3::new(0.0, -3f64.to_radians(), 2f64.to_radians())), Vec3::new(0.3, 0.1, 0.08)));
+            poses.push(Pose::new(
+                so3::exp(&Vec3::new(0.0, -3f64.to_radians(), 2f64.to_radians())),
+                Vec3::new(0.3, 0.1, 0.08),
+            ));
             "general"
         }
         "car-planar-uturn" => {
             let before = local(rng, 8);
-            let after: Vec<Pose> = local(rng, 8).iter().map(|p| about_centre(p, 180.0)).collect();
+            let after: Vec<Pose> = local(rng, 8)
+                .iter()
+                .map(|p| about_centre(p, 180.0))
+                .collect();
             poses.extend(before);
             poses.extend(after);
             "planar"
         }
         "car-planar-loop" => {
             for k in 0..16 {
-                let jitter = planar_pose(rng.gen_range(-0.3..0.3), rng.gen_range(-0.3..0.3), rng.gen_range(-3.0..3.0));
+                let jitter = planar_pose(
+                    rng.gen_range(-0.3..0.3),
+                    rng.gen_range(-0.3..0.3),
+                    rng.gen_range(-3.0..3.0),
+                );
                 poses.push(about_centre(&jitter, 22.5 * k as f64));
             }
             poses[0] = Pose::identity();
             "planar"
         }
         "pure-translation" => {
-            poses = (0..10).map(|k| if k == 0 { Pose::identity() } else { planar_pose(rng.gen_range(-1.0..1.0), rng.gen_range(-0.5..0.5), 0.0) }).collect();
-            poses.iter_mut().skip(1).for_each(|p| p.trans.z = rng.gen_range(-0.05..0.05));
+            poses = (0..10)
+                .map(|k| {
+                    if k == 0 {
+                        Pose::identity()
+                    } else {
+                        planar_pose(rng.gen_range(-1.0..1.0), rng.gen_range(-0.5..0.5), 0.0)
+                    }
+                })
+                .collect();
+            poses
+                .iter_mut()
+                .skip(1)
+                .for_each(|p| p.trans.z = rng.gen_range(-0.05..0.05));
             "pure_translation"
         }
         "single-axis" => {
-            poses = (0..10).map(|k| about_centre(&Pose::identity(), if k == 0 { 0.0 } else { rng.gen_range(-20.0..20.0) })).collect();
+            poses = (0..10)
+                .map(|k| {
+                    about_centre(
+                        &Pose::identity(),
+                        if k == 0 {
+                            0.0
+                        } else {
+                            rng.gen_range(-20.0..20.0)
+                        },
+                    )
+                })
+                .collect();
             "single_axis"
         }
         _ => return None,
     };
-    let scenes: Vec<Vec<(String, Vec3)>> = cameras.iter().map(|(name, cam, v_from_c)| scene_points(rng, &format!("s-{name}"), cam, v_from_c, 40, (3.0, 6.0), 0.5)).collect();
+    let scenes: Vec<Vec<(String, Vec3)>> = cameras
+        .iter()
+        .map(|(name, cam, v_from_c)| {
+            scene_points(
+                rng,
+                &format!("s-{name}"),
+                cam,
+                v_from_c,
+                40,
+                (3.0, 6.0),
+                0.5,
+            )
+        })
+        .collect();
     let scale_pairs = scenes.iter().map(|s| far_pairs(s, 2)).collect();
-    Some(Scenario { preset: preset.into(), motion, cameras, world_from_vehicle: poses, scenes, scale_pairs })
+    Some(Scenario {
+        preset: preset.into(),
+        motion,
+        cameras,
+        world_from_vehicle: poses,
+        scenes,
+        scale_pairs,
+    })
 }
 
 /// Build a preset's session (observations with `noise_px` Gaussian pixel noise) and truth.
 pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManifest, Truth)> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let sc = if preset == "lebraly-5.1" { lebraly(&mut rng) } else { car(preset, &mut rng)? };
+    let sc = if preset == "lebraly-5.1" {
+        lebraly(&mut rng)
+    } else {
+        car(preset, &mut rng)?
+    };
     Some(render(&sc, &mut rng, noise_px))
 }
 
@@ -194,24 +351,43 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
                         continue;
                     }
                     let Some(uv) = cam.project(&p) else { continue };
-                    if uv.x < margin || uv.y < margin || uv.x > cam.width as f64 - 1.0 - margin || uv.y > cam.height as f64 - 1.0 - margin {
+                    if uv.x < margin
+                        || uv.y < margin
+                        || uv.x > cam.width as f64 - 1.0 - margin
+                        || uv.y > cam.height as f64 - 1.0 - margin
+                    {
                         continue;
                     }
                     let n = Vec2::new(px.sample(rng), px.sample(rng));
-                    obs.push(ObservationSpec { point: id.clone(), u: uv.x + n.x, v: uv.y + n.y });
+                    obs.push(ObservationSpec {
+                        point: id.clone(),
+                        u: uv.x + n.x,
+                        v: uv.y + n.y,
+                    });
                 }
             }
             if !obs.is_empty() {
                 observations.insert(name.clone(), obs);
             }
         }
-        frames.push(FrameSpec { index: k as i64, timestamp: Some(k as f64 * 0.5), images: BTreeMap::new(), observations });
+        frames.push(FrameSpec {
+            index: k as i64,
+            timestamp: Some(k as f64 * 0.5),
+            images: BTreeMap::new(),
+            observations,
+        });
     }
     let mut scale = Vec::new();
     for (scene, pairs) in sc.scenes.iter().zip(&sc.scale_pairs) {
         for &(i, j) in pairs {
-            let d = (scene[i].1 - scene[j].1).norm() + if noise_px > 0.0 { mm.sample(rng) } else { 0.0 };
-            scale.push(ScaleSpec { a: scene[i].0.clone(), b: scene[j].0.clone(), distance: d, sigma: Some(5e-4) });
+            let d = (scene[i].1 - scene[j].1).norm()
+                + if noise_px > 0.0 { mm.sample(rng) } else { 0.0 };
+            scale.push(ScaleSpec {
+                a: scene[i].0.clone(),
+                b: scene[j].0.clone(),
+                distance: d,
+                sigma: Some(5e-4),
+            });
         }
     }
     let cameras = sc
@@ -222,7 +398,12 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
             model: c.model.name().into(),
             width: c.width,
             height: c.height,
-            intrinsics: Intrinsics { fx: c.fx, fy: c.fy, cx: c.cx, cy: c.cy },
+            intrinsics: Intrinsics {
+                fx: c.fx,
+                fy: c.fy,
+                cx: c.cx,
+                cy: c.cy,
+            },
             distortion: c.model.coefficients(),
         })
         .collect();
@@ -241,8 +422,16 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
     let truth = Truth {
         preset: sc.preset.clone(),
         reference_camera: reference,
-        ref_from_cam: sc.cameras.iter().map(|(n, _, v_from_c)| (n.clone(), ref_from_vehicle * *v_from_c)).collect(),
-        world_from_rig: sc.world_from_vehicle.iter().map(|w| *w * sc.cameras[0].2).collect(),
+        ref_from_cam: sc
+            .cameras
+            .iter()
+            .map(|(n, _, v_from_c)| (n.clone(), ref_from_vehicle * *v_from_c))
+            .collect(),
+        world_from_rig: sc
+            .world_from_vehicle
+            .iter()
+            .map(|w| *w * sc.cameras[0].2)
+            .collect(),
         motion: sc.motion.to_string(),
     };
     (manifest, truth)

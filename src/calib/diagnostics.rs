@@ -18,7 +18,8 @@ pub const NULL_RELATIVE: f64 = 1e-9;
 pub const MIN_DECISION_SIGMA_PX: f64 = 0.1;
 
 fn is_unobservable(l: f64, lmax: f64, decision_sigma: f64) -> bool {
-    l <= NULL_RELATIVE * lmax || decision_sigma.max(MIN_DECISION_SIGMA_PX) / l.max(1e-300).sqrt() > UNOBSERVABLE_SIGMA
+    l <= NULL_RELATIVE * lmax
+        || decision_sigma.max(MIN_DECISION_SIGMA_PX) / l.max(1e-300).sqrt() > UNOBSERVABLE_SIGMA
 }
 
 /// Unit directions of the joint extrinsic space that the information `info` (unit
@@ -26,7 +27,10 @@ fn is_unobservable(l: f64, lmax: f64, decision_sigma: f64) -> bool {
 pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<f64>> {
     let eig = ((info + info.transpose()) * 0.5).symmetric_eigen();
     let lmax = eig.eigenvalues.amax().max(1e-300);
-    (0..info.nrows()).filter(|&k| is_unobservable(eig.eigenvalues[k], lmax, decision_sigma)).map(|k| eig.eigenvectors.column(k).into_owned()).collect()
+    (0..info.nrows())
+        .filter(|&k| is_unobservable(eig.eigenvalues[k], lmax, decision_sigma))
+        .map(|k| eig.eigenvectors.column(k).into_owned())
+        .collect()
 }
 
 pub struct Observability {
@@ -44,29 +48,49 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
     let sym = (&info + info.transpose()) * 0.5;
     let eig = sym.clone().symmetric_eigen();
     let lmax = eig.eigenvalues.amax().max(1e-300);
-    let sigma = if ba.sigma_px.is_finite() { ba.sigma_px } else { 1.0 };
+    let sigma = if ba.sigma_px.is_finite() {
+        ba.sigma_px
+    } else {
+        1.0
+    };
     let mut cov = DMatrix::zeros(n, n);
     let mut null = Vec::new();
     for k in 0..n {
         let l = eig.eigenvalues[k];
         let v = eig.eigenvectors.column(k).into_owned();
         if is_unobservable(l, lmax, sigma) {
-            let s = if l > NULL_RELATIVE * lmax { Some(sigma / l.sqrt()) } else { None };
+            let s = if l > NULL_RELATIVE * lmax {
+                Some(sigma / l.sqrt())
+            } else {
+                None
+            };
             null.push((v, s));
         } else {
             cov += &v * v.transpose() * (sigma * sigma / l);
         }
     }
-    let per_cov = cams.iter().enumerate().map(|(i, c)| (*c, cov.view((6 * i, 6 * i), (6, 6)).into_owned())).collect();
+    let per_cov = cams
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (*c, cov.view((6 * i, 6 * i), (6, 6)).into_owned()))
+        .collect();
     let per_camera_eigen = (0..cams.len())
         .map(|i| {
-            let b = sym.view((6 * i, 6 * i), (6, 6)).into_owned().symmetric_eigen();
+            let b = sym
+                .view((6 * i, 6 * i), (6, 6))
+                .into_owned()
+                .symmetric_eigen();
             let mut e: Vec<f64> = b.eigenvalues.iter().copied().collect();
             e.sort_by(|a, b| b.total_cmp(a));
             e
         })
         .collect();
-    Some(Observability { cov: per_cov, null, cams, per_camera_eigen })
+    Some(Observability {
+        cov: per_cov,
+        null,
+        cams,
+        per_camera_eigen,
+    })
 }
 
 /// Rank of the null directions restricted to rows `[off, off+3)`: DOF lost there.
@@ -110,13 +134,32 @@ pub fn residual_report(session: &Session, ba: &RigBaOutput) -> Residuals {
         inliers: all.len(),
         outliers: ba.outliers.len(),
         sigma_px: ba.sigma_px,
-        per_camera: (0..nc).map(|c| CameraStats { camera: session.cameras[c].id.clone(), stats: Stats::of(&per_cam[c]) }).collect(),
-        per_frame: per_frame.into_iter().map(|(f, v)| FrameStats { frame: session.frames[f].index, stats: Stats::of(&v) }).collect(),
-        histogram: Histogram { edges_px: edges, counts },
+        per_camera: (0..nc)
+            .map(|c| CameraStats {
+                camera: session.cameras[c].id.clone(),
+                stats: Stats::of(&per_cam[c]),
+            })
+            .collect(),
+        per_frame: per_frame
+            .into_iter()
+            .map(|(f, v)| FrameStats {
+                frame: session.frames[f].index,
+                stats: Stats::of(&v),
+            })
+            .collect(),
+        histogram: Histogram {
+            edges_px: edges,
+            counts,
+        },
         outlier_list: ba
             .outliers
             .iter()
-            .map(|(k, e)| Outlier { frame: session.frames[k.frame].index, camera: session.cameras[k.camera].id.clone(), point: session.points.ids[k.point].clone(), residual_px: *e })
+            .map(|(k, e)| Outlier {
+                frame: session.frames[k.frame].index,
+                camera: session.cameras[k.camera].id.clone(),
+                point: session.points.ids[k.point].clone(),
+                residual_px: *e,
+            })
             .collect(),
     }
 }

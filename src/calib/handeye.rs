@@ -88,7 +88,10 @@ fn poses_by_scene(traj: &Trajectories, c: usize) -> BTreeMap<usize, BTreeMap<usi
 }
 
 /// Relative motions `(A, B)` = (ref^k_from_ref^k0, cam^k_from_cam^k0) for camera `c`.
-fn motion_pairs(refp: &BTreeMap<usize, BTreeMap<usize, Pose>>, camp: &BTreeMap<usize, BTreeMap<usize, Pose>>) -> Vec<(Pose, Pose)> {
+fn motion_pairs(
+    refp: &BTreeMap<usize, BTreeMap<usize, Pose>>,
+    camp: &BTreeMap<usize, BTreeMap<usize, Pose>>,
+) -> Vec<(Pose, Pose)> {
     let mut out = Vec::new();
     for rs in refp.values() {
         for cs in camp.values() {
@@ -121,7 +124,11 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
         MotionClass::General => {}
         MotionClass::Planar | MotionClass::SingleAxis => {
             // Eq. 10 around the motion with the largest rotation (index "1" of the paper).
-            if let Some((i1, _)) = pairs.iter().enumerate().max_by(|x, y| so3::log(&x.1 .0.rot).norm().total_cmp(&so3::log(&y.1 .0.rot).norm())) {
+            if let Some((i1, _)) = pairs.iter().enumerate().max_by(|x, y| {
+                so3::log(&x.1 .0.rot)
+                    .norm()
+                    .total_cmp(&so3::log(&y.1 .0.rot).norm())
+            }) {
                 let (a1, b1) = pairs[i1];
                 for (k, (a, b)) in pairs.iter().enumerate() {
                     let wa = so3::log(&a.rot);
@@ -132,8 +139,10 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
                     if k == i1 {
                         continue;
                     }
-                    let ta = (Mat3::identity() - a.rot) * a1.trans - (Mat3::identity() - a1.rot) * a.trans;
-                    let tb = (Mat3::identity() - b.rot) * b1.trans - (Mat3::identity() - b1.rot) * b.trans;
+                    let ta = (Mat3::identity() - a.rot) * a1.trans
+                        - (Mat3::identity() - a1.rot) * a.trans;
+                    let tb = (Mat3::identity() - b.rot) * b1.trans
+                        - (Mat3::identity() - b1.rot) * b.trans;
                     let scale = 0.5 * (ta.norm() + tb.norm());
                     if scale < 1e-9 {
                         continue;
@@ -141,7 +150,11 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
                     vector_rows(&(tb / scale), &(ta / scale), &mut rows);
                     if wa.norm() > MIN_ROTATION {
                         let (na, nb) = (wa.normalize(), wb.normalize());
-                        vector_rows(&(tb.cross(&nb) / scale), &(ta.cross(&na) / scale), &mut rows);
+                        vector_rows(
+                            &(tb.cross(&nb) / scale),
+                            &(ta.cross(&na) / scale),
+                            &mut rows,
+                        );
                     }
                 }
             }
@@ -169,7 +182,8 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
     }
     let v = if rows.is_empty() {
         // Homogeneous: the null vector, scaled to det = +1 (eq. 7).
-        super::pnp::null_vector(&m).unwrap_or_else(|| DVector::from_row_slice(Mat3::identity().transpose().as_slice()))
+        super::pnp::null_vector(&m)
+            .unwrap_or_else(|| DVector::from_row_slice(Mat3::identity().transpose().as_slice()))
     } else {
         // Least squares with a tiny pull towards the identity for directions no row fixes.
         let mut ata = m.transpose() * &m;
@@ -179,11 +193,17 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
         }
         let id = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0];
         let atb = m.transpose() * rhs + DVector::from_row_slice(&id) * eps;
-        ata.cholesky().map(|c| c.solve(&atb)).unwrap_or_else(|| DVector::from_row_slice(&id))
+        ata.cholesky()
+            .map(|c| c.solve(&atb))
+            .unwrap_or_else(|| DVector::from_row_slice(&id))
     };
     let vm = Mat3::from_row_slice(v.as_slice());
     let det = vm.determinant();
-    let vm = if det != 0.0 { vm * det.signum() * det.abs().powf(-1.0 / 3.0) } else { vm };
+    let vm = if det != 0.0 {
+        vm * det.signum() * det.abs().powf(-1.0 / 3.0)
+    } else {
+        vm
+    };
     so3::project_to_so3(&vm)
 }
 
@@ -204,7 +224,9 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         }
     }
     if ref_motions.is_empty() {
-        return Err(InitError::ReferenceNotObserved(session.cameras[r].id.clone()));
+        return Err(InitError::ReferenceNotObserved(
+            session.cameras[r].id.clone(),
+        ));
     }
     let motion = classify(&ref_motions);
 
@@ -232,7 +254,12 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
     }
     let mut rw: Vec<Option<Mat3>> = vec![None; nf];
     let mut rs: Vec<Option<Mat3>> = vec![None; ns];
-    let base = edges.iter().filter(|e| e.2 == r).map(|e| e.0).min().unwrap_or(0);
+    let base = edges
+        .iter()
+        .filter(|e| e.2 == r)
+        .map(|e| e.0)
+        .min()
+        .unwrap_or(0);
     rw[base] = Some(Mat3::identity());
     loop {
         let mut changed = false;
@@ -281,9 +308,27 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
     }
 
     // Translations: unknowns [t_X (cams ≠ ref) | t_W (frames ≠ base) | t_S (scenes)].
-    let cam_col: Vec<Option<usize>> = (0..nc).scan(0, |n, c| Some(if c == r { None } else { *n += 1; Some(*n - 1) })).collect();
+    let cam_col: Vec<Option<usize>> = (0..nc)
+        .scan(0, |n, c| {
+            Some(if c == r {
+                None
+            } else {
+                *n += 1;
+                Some(*n - 1)
+            })
+        })
+        .collect();
     let ncx = nc - 1;
-    let frame_col: Vec<Option<usize>> = (0..nf).scan(0, |n, f| Some(if f == base || rw[f].is_none() { None } else { *n += 1; Some(ncx + *n - 1) })).collect();
+    let frame_col: Vec<Option<usize>> = (0..nf)
+        .scan(0, |n, f| {
+            Some(if f == base || rw[f].is_none() {
+                None
+            } else {
+                *n += 1;
+                Some(ncx + *n - 1)
+            })
+        })
+        .collect();
     let nfw = frame_col.iter().flatten().count();
     let scene_col = |s: usize| ncx + nfw + s;
     let dim = 3 * (ncx + nfw + ns);
@@ -291,7 +336,9 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
     let mut atb = DVector::<f64>::zeros(dim);
     let mut any_foreign = BTreeSet::new();
     for &(f, s, c, p) in &edges {
-        let (Some(w), Some(_)) = (rw[f], rs[s]) else { continue };
+        let (Some(w), Some(_)) = (rw[f], rs[s]) else {
+            continue;
+        };
         any_foreign.insert((s, c));
         // t_S − t_W − R_W t_X = R_W R_X t_P
         let mut blocks: Vec<(usize, Mat3)> = vec![(scene_col(s), Mat3::identity())];
@@ -342,7 +389,11 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         let mut used_prior = false;
         for c in 0..nc {
             let Some(cc) = cam_col[c] else { continue };
-            let h = if motion.class == MotionClass::Planar { session.height_priors[c] } else { None };
+            let h = if motion.class == MotionClass::Planar {
+                session.height_priors[c]
+            } else {
+                None
+            };
             used_prior |= h.is_some();
             for d in &held {
                 let target = h.unwrap_or(0.0);
@@ -403,24 +454,35 @@ mod tests {
     #[test]
     fn eq6_null_vector_is_the_rotation() {
         let x = Pose::from_rotvec(Vec3::new(0.3, -2.0, 0.4), Vec3::new(0.1, 0.2, -1.0));
-        let pairs: Vec<(Pose, Pose)> = [Vec3::new(0.1, 0.2, 0.0), Vec3::new(0.0, -0.1, 0.3), Vec3::new(0.2, 0.0, -0.1)]
-            .iter()
-            .map(|w| {
-                let a = Pose::from_rotvec(*w, Vec3::new(0.3, -0.1, 0.2));
-                (a, x.inverse() * a * x)
-            })
-            .collect();
+        let pairs: Vec<(Pose, Pose)> = [
+            Vec3::new(0.1, 0.2, 0.0),
+            Vec3::new(0.0, -0.1, 0.3),
+            Vec3::new(0.2, 0.0, -0.1),
+        ]
+        .iter()
+        .map(|w| {
+            let a = Pose::from_rotvec(*w, Vec3::new(0.3, -0.1, 0.2));
+            (a, x.inverse() * a * x)
+        })
+        .collect();
         let r = rotation(&pairs, MotionClass::General, &mut (0, 0, 0));
         assert!(so3::angle_between(&r, &x.rot) < 1e-9);
         // Planar: axes all parallel, eq. 10 resolves the rotation.
         let planar: Vec<(Pose, Pose)> = [(10.0f64, 0.3, 0.1), (-6.0, -0.2, 0.4), (4.0, 0.5, -0.3)]
             .iter()
             .map(|(d, tx, tz)| {
-                let a = Pose::from_rotvec(Vec3::new(0.0, d.to_radians(), 0.0), Vec3::new(*tx, 0.0, *tz));
+                let a = Pose::from_rotvec(
+                    Vec3::new(0.0, d.to_radians(), 0.0),
+                    Vec3::new(*tx, 0.0, *tz),
+                );
                 (a, x.inverse() * a * x)
             })
             .collect();
         let r = rotation(&planar, MotionClass::Planar, &mut (0, 0, 0));
-        assert!(so3::angle_between(&r, &x.rot) < 1e-9, "{}", so3::angle_between(&r, &x.rot));
+        assert!(
+            so3::angle_between(&r, &x.rot) < 1e-9,
+            "{}",
+            so3::angle_between(&r, &x.rot)
+        );
     }
 }

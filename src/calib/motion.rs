@@ -62,7 +62,10 @@ pub fn classify(motions: &[Pose]) -> MotionReport {
     let imax = eig.eigenvalues.imax();
     let n: Vec3 = eig.eigenvectors.column(imax).into();
     let n = if n.z < 0.0 { -n } else { n };
-    let out_of_axis = ws.iter().map(|w| (w - n * w.dot(&n)).norm()).fold(0.0, f64::max);
+    let out_of_axis = ws
+        .iter()
+        .map(|w| (w - n * w.dot(&n)).norm())
+        .fold(0.0, f64::max);
     // Fit one rotation axis line: (I − R_k) c = t_k⊥ for all k.
     let mut a = Mat3::zeros();
     let mut b = Vec3::zeros();
@@ -72,14 +75,33 @@ pub fn classify(motions: &[Pose]) -> MotionReport {
         a += i_r.transpose() * i_r;
         b += i_r.transpose() * t_perp;
     }
-    let c = crate::solver::bundle::symmetric_pseudo_inverse(&nalgebra::DMatrix::from_column_slice(3, 3, a.as_slice()), 1e-9) * nalgebra::DVector::from_column_slice(b.as_slice());
+    let c = crate::solver::bundle::symmetric_pseudo_inverse(
+        &nalgebra::DMatrix::from_column_slice(3, 3, a.as_slice()),
+        1e-9,
+    ) * nalgebra::DVector::from_column_slice(b.as_slice());
     let c = Vec3::new(c[0], c[1], c[2]);
     let line_rms = if motions.is_empty() {
         0.0
     } else {
-        (motions.iter().map(|m| ((Mat3::identity() - m.rot) * c - (m.trans - n * m.trans.dot(&n))).norm_squared()).sum::<f64>() / motions.len() as f64).sqrt()
+        (motions
+            .iter()
+            .map(|m| {
+                ((Mat3::identity() - m.rot) * c - (m.trans - n * m.trans.dot(&n))).norm_squared()
+            })
+            .sum::<f64>()
+            / motions.len() as f64)
+            .sqrt()
     };
-    let t_rms = if motions.is_empty() { 0.0 } else { (motions.iter().map(|m| (m.trans - n * m.trans.dot(&n)).norm_squared()).sum::<f64>() / motions.len() as f64).sqrt() };
+    let t_rms = if motions.is_empty() {
+        0.0
+    } else {
+        (motions
+            .iter()
+            .map(|m| (m.trans - n * m.trans.dot(&n)).norm_squared())
+            .sum::<f64>()
+            / motions.len() as f64)
+            .sqrt()
+    };
     let class = if informative == 0 {
         if max_t > 1e-3 {
             MotionClass::PureTranslation
@@ -114,21 +136,34 @@ mod tests {
 
     #[test]
     fn classes() {
-        let planar = vec![yaw(0.1, 0.5, 10.0), yaw(-0.4, 0.2, -7.0), yaw(0.3, -0.3, 4.0)];
+        let planar = vec![
+            yaw(0.1, 0.5, 10.0),
+            yaw(-0.4, 0.2, -7.0),
+            yaw(0.3, -0.3, 4.0),
+        ];
         let r = classify(&planar);
         assert_eq!(r.class, MotionClass::Planar);
         assert!((Vec3::from(r.axis).dot(&Vec3::y()).abs() - 1.0).abs() < 1e-9);
         let mut general = planar.clone();
-        general.push(Pose::from_rotvec(Vec3::new(0.05, 0.1, 0.0), Vec3::new(0.1, 0.1, 0.1)));
+        general.push(Pose::from_rotvec(
+            Vec3::new(0.05, 0.1, 0.0),
+            Vec3::new(0.1, 0.1, 0.1),
+        ));
         assert_eq!(classify(&general).class, MotionClass::General);
-        let trans = vec![Pose::from_rotvec(Vec3::zeros(), Vec3::new(0.5, 0.0, 0.1)), Pose::from_rotvec(Vec3::zeros(), Vec3::new(0.0, 0.0, 1.0))];
+        let trans = vec![
+            Pose::from_rotvec(Vec3::zeros(), Vec3::new(0.5, 0.0, 0.1)),
+            Pose::from_rotvec(Vec3::zeros(), Vec3::new(0.0, 0.0, 1.0)),
+        ];
         assert_eq!(classify(&trans).class, MotionClass::PureTranslation);
         // Rotation about a fixed vertical line through (1, 0, 2): t = (I − R) c.
         let c = Vec3::new(1.0, 0.0, 2.0);
-        let single: Vec<Pose> = [10.0f64, -15.0, 25.0].iter().map(|d| {
-            let r = so3::exp(&Vec3::new(0.0, d.to_radians(), 0.0));
-            Pose::new(r, (Mat3::identity() - r) * c)
-        }).collect();
+        let single: Vec<Pose> = [10.0f64, -15.0, 25.0]
+            .iter()
+            .map(|d| {
+                let r = so3::exp(&Vec3::new(0.0, d.to_radians(), 0.0));
+                Pose::new(r, (Mat3::identity() - r) * c)
+            })
+            .collect();
         assert_eq!(classify(&single).class, MotionClass::SingleAxis);
     }
 }

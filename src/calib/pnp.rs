@@ -29,14 +29,25 @@ pub fn principal_axes(pts: &[Vec3]) -> (Vec3, Mat3, Vec3) {
     let e1: Vec3 = eig.eigenvectors.column(order[0]).into();
     let e2: Vec3 = eig.eigenvectors.column(order[1]).into();
     let e3 = e1.cross(&e2);
-    let sv = Vec3::new(eig.eigenvalues[order[0]].max(0.0).sqrt(), eig.eigenvalues[order[1]].max(0.0).sqrt(), eig.eigenvalues[order[2]].max(0.0).sqrt());
+    let sv = Vec3::new(
+        eig.eigenvalues[order[0]].max(0.0).sqrt(),
+        eig.eigenvalues[order[1]].max(0.0).sqrt(),
+        eig.eigenvalues[order[2]].max(0.0).sqrt(),
+    );
     (c, Mat3::from_columns(&[e1, e2, e3]), sv)
 }
 
 /// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
 pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
-    let xy: Vec<Vec2> = uv.iter().map(|p| camera.unproject(p)).collect::<Option<_>>()?;
-    let init = if is_planar(local) { planar_pose(local, &xy)? } else { dlt_pose(local, &xy)? };
+    let xy: Vec<Vec2> = uv
+        .iter()
+        .map(|p| camera.unproject(p))
+        .collect::<Option<_>>()?;
+    let init = if is_planar(local) {
+        planar_pose(local, &xy)?
+    } else {
+        dlt_pose(local, &xy)?
+    };
     Some(refine_pose(camera, local, uv, init))
 }
 
@@ -47,9 +58,16 @@ fn planar_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
     }
     let (c, basis, _) = principal_axes(local);
     let plane_from_local = Pose::new(basis.transpose(), -(basis.transpose() * c));
-    let ab: Vec<Vec2> = local.iter().map(|p| plane_from_local.apply(p).xy()).collect();
+    let ab: Vec<Vec2> = local
+        .iter()
+        .map(|p| plane_from_local.apply(p).xy())
+        .collect();
     let h = homography(&ab, xy)?;
-    let (h1, h2, h3) = (h.column(0).into_owned(), h.column(1).into_owned(), h.column(2).into_owned());
+    let (h1, h2, h3) = (
+        h.column(0).into_owned(),
+        h.column(1).into_owned(),
+        h.column(2).into_owned(),
+    );
     let mut s = 2.0 / (h1.norm() + h2.norm());
     if h3.z * s < 0.0 {
         s = -s;
@@ -82,7 +100,11 @@ pub fn homography(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
 pub fn normalizer(p: &[Vec2]) -> (Mat3, Vec<Vec2>) {
     let c = p.iter().sum::<Vec2>() / p.len() as f64;
     let d = p.iter().map(|q| (q - c).norm()).sum::<f64>() / p.len() as f64;
-    let s = if d > 1e-300 { std::f64::consts::SQRT_2 / d } else { 1.0 };
+    let s = if d > 1e-300 {
+        std::f64::consts::SQRT_2 / d
+    } else {
+        1.0
+    };
     let t = Mat3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0);
     (t, p.iter().map(|q| (q - c) * s).collect())
 }
@@ -91,7 +113,12 @@ pub fn normalizer(p: &[Vec2]) -> (Mat3, Vec<Vec2>) {
 pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
     let ata = m.transpose() * m;
     let eig = ata.symmetric_eigen();
-    let k = eig.eigenvalues.iter().enumerate().min_by(|a, b| a.1.total_cmp(b.1))?.0;
+    let k = eig
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))?
+        .0;
     Some(eig.eigenvectors.column(k).into_owned())
 }
 
@@ -134,7 +161,15 @@ fn dlt_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
 /// Gauss–Newton with Levenberg damping on the pixel reprojection error.
 pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> Pose {
     let cost = |pose: &Pose| -> f64 {
-        local.iter().zip(uv).map(|(x, m)| camera.project(&pose.apply(x)).map_or(1e12, |p| (p - m).norm_squared())).sum()
+        local
+            .iter()
+            .zip(uv)
+            .map(|(x, m)| {
+                camera
+                    .project(&pose.apply(x))
+                    .map_or(1e12, |p| (p - m).norm_squared())
+            })
+            .sum()
     };
     let mut pose = init;
     let mut c = cost(&pose);
@@ -144,11 +179,14 @@ pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> 
         let mut g = Vector6::zeros();
         for (x, m) in local.iter().zip(uv) {
             let p = pose.apply(x);
-            let Some((proj, jp)) = camera.project_with_jacobian(&p) else { continue };
+            let Some((proj, jp)) = camera.project_with_jacobian(&p) else {
+                continue;
+            };
             let r = proj - m;
             let mut j = nalgebra::SMatrix::<f64, 2, 6>::zeros();
             j.fixed_view_mut::<2, 3>(0, 0).copy_from(&jp);
-            j.fixed_view_mut::<2, 3>(0, 3).copy_from(&(-jp * so3::skew(&(pose.rot * x))));
+            j.fixed_view_mut::<2, 3>(0, 3)
+                .copy_from(&(-jp * so3::skew(&(pose.rot * x))));
             h += j.transpose() * j;
             g += j.transpose() * r;
         }
@@ -158,8 +196,13 @@ pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> 
             for i in 0..6 {
                 hd[(i, i)] += lambda * h[(i, i)].max(1e-12);
             }
-            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else { break };
-            let cand = pose.perturbed(&Vec3::new(step[0], step[1], step[2]), &Vec3::new(step[3], step[4], step[5]));
+            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else {
+                break;
+            };
+            let cand = pose.perturbed(
+                &Vec3::new(step[0], step[1], step[2]),
+                &Vec3::new(step[3], step[4], step[5]),
+            );
             let cc = cost(&cand);
             if cc < c {
                 let done = c - cc < 1e-14 * c.max(1e-30) || step.norm() < 1e-14;
@@ -185,7 +228,10 @@ mod tests {
 
     fn check(local: &[Vec3], camera: &Camera) {
         let truth = Pose::from_rotvec(Vec3::new(0.3, -0.4, 0.2), Vec3::new(0.1, -0.2, 3.0));
-        let uv: Vec<Vec2> = local.iter().map(|x| camera.project(&truth.apply(x)).unwrap()).collect();
+        let uv: Vec<Vec2> = local
+            .iter()
+            .map(|x| camera.project(&truth.apply(x)).unwrap())
+            .collect();
         let est = estimate_pose(camera, local, &uv).unwrap();
         let (dr, dt) = est.distance(&truth);
         assert!(dr < 1e-9 && dt < 1e-9, "dr {dr} dt {dt}");
@@ -193,10 +239,29 @@ mod tests {
 
     #[test]
     fn planar_and_general_pnp_exact() {
-        let cam = Camera { model: CameraModel::Radtan { k1: -0.2, k2: 0.05, p1: 1e-3, p2: 0.0, k3: 0.0 }, ..Camera::pinhole(900.0, 900.0, 640.0, 480.0, 1280, 960) };
-        let planar: Vec<Vec3> = (0..12).map(|i| Vec3::new(0.1 * (i % 4) as f64, 0.12 * (i / 4) as f64, 0.0)).collect();
+        let cam = Camera {
+            model: CameraModel::Radtan {
+                k1: -0.2,
+                k2: 0.05,
+                p1: 1e-3,
+                p2: 0.0,
+                k3: 0.0,
+            },
+            ..Camera::pinhole(900.0, 900.0, 640.0, 480.0, 1280, 960)
+        };
+        let planar: Vec<Vec3> = (0..12)
+            .map(|i| Vec3::new(0.1 * (i % 4) as f64, 0.12 * (i / 4) as f64, 0.0))
+            .collect();
         check(&planar, &cam);
-        let general: Vec<Vec3> = (0..10).map(|i| Vec3::new(0.1 * (i % 4) as f64 - 0.2, 0.12 * (i / 4) as f64, 0.05 * ((i * 7) % 5) as f64)).collect();
+        let general: Vec<Vec3> = (0..10)
+            .map(|i| {
+                Vec3::new(
+                    0.1 * (i % 4) as f64 - 0.2,
+                    0.12 * (i / 4) as f64,
+                    0.05 * ((i * 7) % 5) as f64,
+                )
+            })
+            .collect();
         check(&general, &cam);
     }
 
@@ -205,9 +270,23 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let cam = Camera::pinhole(1000.0, 1000.0, 640.0, 480.0, 1280, 960);
         let truth = Pose::from_rotvec(Vec3::new(0.1, 0.2, -0.1), Vec3::new(0.0, 0.1, 2.0));
-        let local: Vec<Vec3> = (0..20).map(|i| Vec3::new(0.2 * (i % 5) as f64 - 0.4, 0.2 * (i / 5) as f64 - 0.3, 0.1 * (i % 3) as f64)).collect();
+        let local: Vec<Vec3> = (0..20)
+            .map(|i| {
+                Vec3::new(
+                    0.2 * (i % 5) as f64 - 0.4,
+                    0.2 * (i / 5) as f64 - 0.3,
+                    0.1 * (i % 3) as f64,
+                )
+            })
+            .collect();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-        let uv: Vec<Vec2> = local.iter().map(|x| cam.project(&truth.apply(x)).unwrap() + Vec2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5))).collect();
+        let uv: Vec<Vec2> = local
+            .iter()
+            .map(|x| {
+                cam.project(&truth.apply(x)).unwrap()
+                    + Vec2::new(rng.gen_range(-0.5..0.5), rng.gen_range(-0.5..0.5))
+            })
+            .collect();
         let est = estimate_pose(&cam, &local, &uv).unwrap();
         let (dr, dt) = est.distance(&truth);
         assert!(dr < 5e-3 && dt < 1e-2, "dr {dr} dt {dt}");

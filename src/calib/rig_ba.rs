@@ -12,7 +12,9 @@ use super::handeye::InitOutput;
 use super::trajectory::Trajectories;
 use crate::geometry::Vec2;
 use crate::session::{PointKind, Session};
-use crate::solver::bundle::{BundleProblem, BundleSummary, DistanceConstraint, LmOptions, Obs, PointRef, DirectionPrior};
+use crate::solver::bundle::{
+    BundleProblem, BundleSummary, DirectionPrior, DistanceConstraint, LmOptions, Obs, PointRef,
+};
 use crate::solver::Loss;
 use nalgebra::DMatrix;
 use std::collections::HashMap;
@@ -29,7 +31,12 @@ pub struct RigBaOptions {
 
 impl Default for RigBaOptions {
     fn default() -> Self {
-        Self { loss: Loss::Huber { scale: 2.0 }, outlier_sigmas: 4.0, min_outlier_px: 1.0, max_iterations: 100 }
+        Self {
+            loss: Loss::Huber { scale: 2.0 },
+            outlier_sigmas: 4.0,
+            min_outlier_px: 1.0,
+            max_iterations: 100,
+        }
     }
 }
 
@@ -62,18 +69,32 @@ pub const HOLD_PRIOR_SIGMA: f64 = 1e-6;
 /// Priors holding every direction of the extrinsics that the information at the
 /// initialisation leaves undetermined (see [`crate::calib::diagnostics`]).
 fn hold_priors(problem: &BundleProblem, decision_sigma_px: f64) -> Vec<DirectionPrior> {
-    let Some((cams, info)) = problem.extrinsic_information(&Loss::Squared) else { return vec![] };
+    let Some((cams, info)) = problem.extrinsic_information(&Loss::Squared) else {
+        return vec![];
+    };
     let null = crate::calib::diagnostics::null_directions(&info, decision_sigma_px);
     null.into_iter()
         .map(|v| {
             let terms: Vec<(usize, nalgebra::Vector6<f64>)> = cams
                 .iter()
                 .enumerate()
-                .map(|(i, c)| (*c, nalgebra::Vector6::from_iterator((0..6).map(|k| v[6 * i + k]))))
+                .map(|(i, c)| {
+                    (
+                        *c,
+                        nalgebra::Vector6::from_iterator((0..6).map(|k| v[6 * i + k])),
+                    )
+                })
                 .filter(|(_, x)| x.norm() > 1e-9)
                 .collect();
-            let origin = terms.iter().map(|(c, _)| problem.rig_from_cam[*c]).collect();
-            DirectionPrior { terms, origin, sigma: HOLD_PRIOR_SIGMA }
+            let origin = terms
+                .iter()
+                .map(|(c, _)| problem.rig_from_cam[*c])
+                .collect();
+            DirectionPrior {
+                terms,
+                origin,
+                sigma: HOLD_PRIOR_SIGMA,
+            }
         })
         .collect()
 }
@@ -81,17 +102,30 @@ fn hold_priors(problem: &BundleProblem, decision_sigma_px: f64) -> Vec<Direction
 /// Median residual norm of a 2D Gaussian is σ·√(2 ln 2).
 const MEDIAN_TO_SIGMA: f64 = 1.0 / 1.177_410_022_515_474_6;
 
-pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &RigBaOptions) -> RigBaOutput {
+pub fn refine(
+    session: &Session,
+    traj: &Trajectories,
+    init: &InitOutput,
+    opts: &RigBaOptions,
+) -> RigBaOutput {
     let nc = session.cameras.len();
-    let rig_frames: Vec<usize> = (0..session.frames.len()).filter(|f| init.world_from_rig[*f].is_some()).collect();
-    let rig_of_frame: HashMap<usize, usize> = rig_frames.iter().enumerate().map(|(i, f)| (*f, i)).collect();
+    let rig_frames: Vec<usize> = (0..session.frames.len())
+        .filter(|f| init.world_from_rig[*f].is_some())
+        .collect();
+    let rig_of_frame: HashMap<usize, usize> = rig_frames
+        .iter()
+        .enumerate()
+        .map(|(i, f)| (*f, i))
+        .collect();
     // Points and bodies in the world frame (the base frame of the reference camera).
     let mut points = Vec::new();
     let mut point_index = HashMap::new();
     let mut bodies = Vec::new();
     let mut body_index = HashMap::new();
     for (s, scene) in traj.scenes.iter().enumerate() {
-        let Some(w_from_s) = init.world_from_scene[s] else { continue };
+        let Some(w_from_s) = init.world_from_scene[s] else {
+            continue;
+        };
         for (p, x) in &scene.points {
             point_index.insert(*p, points.len());
             points.push(w_from_s.apply(x));
@@ -104,18 +138,31 @@ pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &
     let point_ref = |p: usize| -> Option<PointRef> {
         match session.points.kinds[p] {
             PointKind::Free => point_index.get(&p).map(|&i| PointRef::Free(i)),
-            PointKind::Body { body, local } => body_index.get(&body).map(|&b| PointRef::Body { body: b, local }),
+            PointKind::Body { body, local } => body_index
+                .get(&body)
+                .map(|&b| PointRef::Body { body: b, local }),
         }
     };
     let mut observations = Vec::new();
     let mut keys = Vec::new();
     for (fi, f) in session.frames.iter().enumerate() {
-        let Some(&rig) = rig_of_frame.get(&fi) else { continue };
+        let Some(&rig) = rig_of_frame.get(&fi) else {
+            continue;
+        };
         for (ci, obs) in f.observations.iter().enumerate() {
             for o in obs {
                 if let Some(point) = point_ref(o.point) {
-                    observations.push(Obs { rig, cam: ci, point, uv: o.uv });
-                    keys.push(ObsKey { frame: fi, camera: ci, point: o.point });
+                    observations.push(Obs {
+                        rig,
+                        cam: ci,
+                        point,
+                        uv: o.uv,
+                    });
+                    keys.push(ObsKey {
+                        frame: fi,
+                        camera: ci,
+                        point: o.point,
+                    });
                 }
             }
         }
@@ -123,14 +170,30 @@ pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &
     let distances = session
         .distances
         .iter()
-        .filter_map(|d| Some(DistanceConstraint { a: point_ref(d.a)?, b: point_ref(d.b)?, distance: d.distance, sigma: d.sigma }))
+        .filter_map(|d| {
+            Some(DistanceConstraint {
+                a: point_ref(d.a)?,
+                b: point_ref(d.b)?,
+                distance: d.distance,
+                sigma: d.sigma,
+            })
+        })
         .collect();
-    let base = rig_frames.iter().position(|f| init.world_from_rig[*f].is_some_and(|p| p.trans.norm() == 0.0 && p.rot == nalgebra::Matrix3::identity())).unwrap_or(0);
+    let base = rig_frames
+        .iter()
+        .position(|f| {
+            init.world_from_rig[*f]
+                .is_some_and(|p| p.trans.norm() == 0.0 && p.rot == nalgebra::Matrix3::identity())
+        })
+        .unwrap_or(0);
     let mut problem = BundleProblem {
         cameras: session.cameras.iter().map(|c| c.camera.clone()).collect(),
         rig_from_cam: init.ref_from_cam.clone(),
         cam_fixed: (0..nc).map(|c| c == session.reference).collect(),
-        world_from_rig: rig_frames.iter().map(|f| init.world_from_rig[*f].unwrap_or_default()).collect(),
+        world_from_rig: rig_frames
+            .iter()
+            .map(|f| init.world_from_rig[*f].unwrap_or_default())
+            .collect(),
         rig_fixed: (0..rig_frames.len()).map(|i| i == base).collect(),
         points,
         world_from_body: bodies.clone(),
@@ -141,7 +204,11 @@ pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &
         pixel_sigma: 1.0,
     };
     // Observations behind their camera at the start cannot be linearised: drop them.
-    let keep: Vec<bool> = problem.observations.iter().map(|o| problem.point_in_camera(o).z > 0.0).collect();
+    let keep: Vec<bool> = problem
+        .observations
+        .iter()
+        .map(|o| problem.point_in_camera(o).z > 0.0)
+        .collect();
     let mut k = keep.iter();
     problem.observations.retain(|_| *k.next().unwrap_or(&false));
     let mut k = keep.iter();
@@ -149,15 +216,28 @@ pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &
 
     // Hold what the data cannot determine, judged at the noise level the per-scene
     // adjustments saw.
-    let mut scene_rms: Vec<f64> = traj.scenes.iter().map(|s| s.rms).filter(|x| x.is_finite()).collect();
+    let mut scene_rms: Vec<f64> = traj
+        .scenes
+        .iter()
+        .map(|s| s.rms)
+        .filter(|x| x.is_finite())
+        .collect();
     scene_rms.sort_by(f64::total_cmp);
     let decision_sigma = scene_rms.get(scene_rms.len() / 2).copied().unwrap_or(1.0);
     problem.priors = hold_priors(&problem, decision_sigma);
 
-    let lm = |loss| LmOptions { max_iterations: opts.max_iterations, loss, ..LmOptions::default() };
+    let lm = |loss| LmOptions {
+        max_iterations: opts.max_iterations,
+        loss,
+        ..LmOptions::default()
+    };
     let robust = problem.solve(&lm(opts.loss));
     // Outliers by a robust estimate of σ.
-    let norms: Vec<f64> = problem.observations.iter().map(|o| problem.residual(o).map_or(f64::INFINITY, |r| r.norm())).collect();
+    let norms: Vec<f64> = problem
+        .observations
+        .iter()
+        .map(|o| problem.residual(o).map_or(f64::INFINITY, |r| r.norm()))
+        .collect();
     let mut sorted: Vec<f64> = norms.iter().copied().filter(|x| x.is_finite()).collect();
     sorted.sort_by(f64::total_cmp);
     let sigma_robust = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0) * MEDIAN_TO_SIGMA;
@@ -185,11 +265,28 @@ pub fn refine(session: &Session, traj: &Trajectories, init: &InitOutput, opts: &
     let free_rigs = problem.rig_fixed.iter().filter(|f| !**f).count();
     let free_cams = problem.cam_fixed.iter().filter(|f| !**f).count();
     let n = 6 * (free_rigs + free_cams + problem.world_from_body.len()) + 3 * problem.points.len();
-    let ss: f64 = problem.observations.iter().filter_map(|o| problem.residual(o)).map(|r: Vec2| r.norm_squared()).sum();
-    let sigma_px = if m > n { (ss / (m - n) as f64).sqrt() } else { f64::NAN };
+    let ss: f64 = problem
+        .observations
+        .iter()
+        .filter_map(|o| problem.residual(o))
+        .map(|r: Vec2| r.norm_squared())
+        .sum();
+    let sigma_px = if m > n {
+        (ss / (m - n) as f64).sqrt()
+    } else {
+        f64::NAN
+    };
     // Report observability from the data alone: the holding priors are taken out.
     let priors = std::mem::take(&mut problem.priors);
     let information = problem.extrinsic_information(&Loss::Squared);
     problem.priors = priors;
-    RigBaOutput { problem, keys: inlier_keys, outliers, summary, sigma_px, information, rig_frames }
+    RigBaOutput {
+        problem,
+        keys: inlier_keys,
+        outliers,
+        summary,
+        sigma_px,
+        information,
+        rig_frames,
+    }
 }

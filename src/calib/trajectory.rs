@@ -29,7 +29,8 @@ pub struct SceneRecon {
     pub poses: BTreeMap<ImageKey, Pose>,
     /// Whether the scale is metric (bodies, or measured distances).
     pub metric: bool,
-    /// Pixel RMS of the scene bundle adjustment.
+    /// Robust pixel noise σ of the scene bundle adjustment (median-based, so a few
+    /// gross outliers do not inflate it).
     pub rms: f64,
 }
 
@@ -118,15 +119,29 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
             Ok(r) => scenes.push(r),
             Err(e) => {
                 failed_scenes.push((s, e));
-                scenes.push(SceneRecon { points: BTreeMap::new(), bodies: BTreeMap::new(), poses: BTreeMap::new(), metric: false, rms: f64::NAN });
+                scenes.push(SceneRecon {
+                    points: BTreeMap::new(),
+                    bodies: BTreeMap::new(),
+                    poses: BTreeMap::new(),
+                    metric: false,
+                    rms: f64::NAN,
+                });
             }
         }
     }
-    Ok(Trajectories { scene_of_point, scenes, failed_scenes })
+    Ok(Trajectories {
+        scene_of_point,
+        scenes,
+        failed_scenes,
+    })
 }
 
 /// Observations of scene `s` per image.
-fn scene_images(session: &Session, scene_of_point: &[Option<usize>], s: usize) -> BTreeMap<ImageKey, Vec<(usize, Vec2)>> {
+fn scene_images(
+    session: &Session,
+    scene_of_point: &[Option<usize>],
+    s: usize,
+) -> BTreeMap<ImageKey, Vec<(usize, Vec2)>> {
     let mut out: BTreeMap<ImageKey, Vec<(usize, Vec2)>> = BTreeMap::new();
     for (fi, f) in session.frames.iter().enumerate() {
         for (ci, obs) in f.observations.iter().enumerate() {
@@ -140,11 +155,21 @@ fn scene_images(session: &Session, scene_of_point: &[Option<usize>], s: usize) -
     out
 }
 
-fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usize, opts: &LmOptions) -> Result<SceneRecon, String> {
+// Posing an image may fail; `entry` would insert before we know the pose exists.
+#[allow(clippy::map_entry)]
+fn reconstruct_scene(
+    session: &Session,
+    scene_of_point: &[Option<usize>],
+    s: usize,
+    opts: &LmOptions,
+) -> Result<SceneRecon, String> {
     let images = scene_images(session, scene_of_point, s);
     let kinds = &session.points.kinds;
     let cams: Vec<_> = session.cameras.iter().map(|c| c.camera.clone()).collect();
-    let has_bodies = images.values().flatten().any(|(p, _)| matches!(kinds[*p], PointKind::Body { .. }));
+    let has_bodies = images
+        .values()
+        .flatten()
+        .any(|(p, _)| matches!(kinds[*p], PointKind::Body { .. }));
     let mut poses: BTreeMap<ImageKey, Pose> = BTreeMap::new();
     let mut bodies: BTreeMap<usize, Pose> = BTreeMap::new();
     let mut points: BTreeMap<usize, Vec3> = BTreeMap::new();
@@ -158,7 +183,11 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
                 *count.entry(body).or_default() += 1;
             }
         }
-        let anchor = count.iter().max_by_key(|(b, c)| (**c, std::cmp::Reverse(**b))).map(|(b, _)| *b).ok_or("no body")?;
+        let anchor = count
+            .iter()
+            .max_by_key(|(b, c)| (**c, std::cmp::Reverse(**b)))
+            .map(|(b, _)| *b)
+            .ok_or("no body")?;
         bodies.insert(anchor, Pose::identity());
         loop {
             let mut progress = false;
@@ -168,7 +197,9 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
                     let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
                         .iter()
                         .filter_map(|(p, uv)| match kinds[*p] {
-                            PointKind::Body { body, local } => bodies.get(&body).map(|sb| (sb.apply(&local), *uv)),
+                            PointKind::Body { body, local } => {
+                                bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
+                            }
                             PointKind::Free => None,
                         })
                         .unzip();
@@ -193,7 +224,9 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
                     }
                     for (body, (local, uv)) in per_body {
                         if local.len() >= 4 {
-                            if let Some(cam_from_body) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
+                            if let Some(cam_from_body) =
+                                pnp::estimate_pose(&cams[key.1], &local, &uv)
+                            {
                                 bodies.insert(body, cam_from_scene.inverse() * cam_from_body);
                                 progress = true;
                             }
@@ -232,8 +265,12 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
             if views.len() >= 2 {
                 if let Some(x) = twoview::triangulate(&views) {
                     let ok = views.iter().all(|(p, _)| p.apply(&x).z > 0.0);
-                    let par = twoview::parallax(&views[0].0, &views[views.len() - 1].0, &x);
-                    if ok && par > 0.5f64.to_radians() {
+                    // The widest pair of rays decides whether depth is determined.
+                    let par = views[1..]
+                        .iter()
+                        .map(|(p, _)| twoview::parallax(&views[0].0, p, &x))
+                        .fold(0.0, f64::max);
+                    if ok && par > 0.25f64.to_radians() {
                         points.insert(pt, x);
                     }
                 }
@@ -247,7 +284,9 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
                 .iter()
                 .filter_map(|(p, uv)| match kinds[*p] {
                     PointKind::Free => points.get(p).map(|x| (*x, *uv)),
-                    PointKind::Body { body, local } => bodies.get(&body).map(|sb| (sb.apply(&local), *uv)),
+                    PointKind::Body { body, local } => {
+                        bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
+                    }
                 })
                 .unzip();
             if local.len() >= 6 || (local.len() >= 4 && pnp::is_planar(&local)) {
@@ -280,8 +319,22 @@ fn reconstruct_scene(session: &Session, scene_of_point: &[Option<usize>], s: usi
         }
     }
 
-    let rms = refine_scene(session, &images, &mut poses, &mut points, &mut bodies, has_bodies, opts);
-    Ok(SceneRecon { points, bodies, poses, metric, rms })
+    let rms = refine_scene(
+        session,
+        &images,
+        &mut poses,
+        &mut points,
+        &mut bodies,
+        has_bodies,
+        opts,
+    );
+    Ok(SceneRecon {
+        points,
+        bodies,
+        poses,
+        metric,
+        rms,
+    })
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -294,7 +347,10 @@ fn median(mut v: Vec<f64>) -> Option<f64> {
 
 /// The image pair to start a scene of unknown geometry from: ≥ 8 shared points, the
 /// largest median parallax. Returns the two keys and `cam_b_from_cam_a`.
-fn best_pair(images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>, cams: &[crate::geometry::Camera]) -> Option<(ImageKey, ImageKey, Pose)> {
+fn best_pair(
+    images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
+    cams: &[crate::geometry::Camera],
+) -> Option<(ImageKey, ImageKey, Pose)> {
     let keys: Vec<&ImageKey> = images.keys().collect();
     // Bound the work on long sequences: pair each of the first images with a spread of others.
     let step = (keys.len() / 40).max(1);
@@ -307,7 +363,10 @@ fn best_pair(images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>, cams: &[crate::geo
             let mut x2 = Vec::new();
             for (p, uv) in a {
                 if let Some(uv2) = bmap.get(p) {
-                    if let (Some(p1), Some(p2)) = (cams[keys[i].1].unproject(uv), cams[keys[j].1].unproject(uv2)) {
+                    if let (Some(p1), Some(p2)) = (
+                        cams[keys[i].1].unproject(uv),
+                        cams[keys[j].1].unproject(uv2),
+                    ) {
                         x1.push(p1);
                         x2.push(p2);
                     }
@@ -316,12 +375,21 @@ fn best_pair(images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>, cams: &[crate::geo
             if x1.len() < 8 {
                 continue;
             }
-            let Some(rel) = twoview::relative_pose(&x1, &x2) else { continue };
+            let Some(rel) = twoview::relative_pose(&x1, &x2) else {
+                continue;
+            };
+            // Only points in front of both views count; a pose most points disagree with
+            // (a wrong chirality under noise) is no start at all.
             let pars: Vec<f64> = x1
                 .iter()
                 .zip(&x2)
-                .filter_map(|(p, q)| twoview::triangulate(&[(Pose::identity(), *p), (rel, *q)]).map(|x| twoview::parallax(&Pose::identity(), &rel, &x)))
+                .filter_map(|(p, q)| twoview::triangulate(&[(Pose::identity(), *p), (rel, *q)]))
+                .filter(|x| x.z > 0.0 && rel.apply(x).z > 0.0)
+                .map(|x| twoview::parallax(&Pose::identity(), &rel, &x))
                 .collect();
+            if (pars.len() as f64) < 0.8 * x1.len() as f64 {
+                continue;
+            }
             let score = median(pars).unwrap_or(0.0) * (x1.len() as f64).sqrt();
             if best.as_ref().is_none_or(|b| score > b.0) {
                 best = Some((score, *keys[i], *keys[j], rel));
@@ -345,26 +413,41 @@ fn refine_scene(
     let pt_ids: Vec<usize> = points.keys().copied().collect();
     let pt_index: HashMap<usize, usize> = pt_ids.iter().enumerate().map(|(i, p)| (*p, i)).collect();
     let body_ids: Vec<usize> = bodies.keys().copied().collect();
-    let body_index: HashMap<usize, usize> = body_ids.iter().enumerate().map(|(i, b)| (*b, i)).collect();
+    let body_index: HashMap<usize, usize> =
+        body_ids.iter().enumerate().map(|(i, b)| (*b, i)).collect();
     let ncam = session.cameras.len();
     let point_ref = |p: usize| -> Option<PointRef> {
         match session.points.kinds[p] {
             PointKind::Free => pt_index.get(&p).map(|&i| PointRef::Free(i)),
-            PointKind::Body { body, local } => body_index.get(&body).map(|&b| PointRef::Body { body: b, local }),
+            PointKind::Body { body, local } => body_index
+                .get(&body)
+                .map(|&b| PointRef::Body { body: b, local }),
         }
     };
     let mut observations = Vec::new();
     for (r, key) in keys.iter().enumerate() {
         for (p, uv) in &images[key] {
             if let Some(point) = point_ref(*p) {
-                observations.push(Obs { rig: r, cam: key.1, point, uv: *uv });
+                observations.push(Obs {
+                    rig: r,
+                    cam: key.1,
+                    point,
+                    uv: *uv,
+                });
             }
         }
     }
     let distances = session
         .distances
         .iter()
-        .filter_map(|d| Some(DistanceConstraint { a: point_ref(d.a)?, b: point_ref(d.b)?, distance: d.distance, sigma: d.sigma }))
+        .filter_map(|d| {
+            Some(DistanceConstraint {
+                a: point_ref(d.a)?,
+                b: point_ref(d.b)?,
+                distance: d.distance,
+                sigma: d.sigma,
+            })
+        })
         .collect();
     let mut problem = BundleProblem {
         cameras: session.cameras.iter().map(|c| c.camera.clone()).collect(),
@@ -375,16 +458,26 @@ fn refine_scene(
         rig_fixed: (0..keys.len()).map(|i| !has_bodies && i == 0).collect(),
         points: pt_ids.iter().map(|p| points[p]).collect(),
         world_from_body: body_ids.iter().map(|b| bodies[b]).collect(),
-        body_fixed: body_ids.iter().enumerate().map(|(i, _)| has_bodies && i == 0 && bodies[&body_ids[0]] == Pose::identity()).collect(),
+        body_fixed: body_ids
+            .iter()
+            .enumerate()
+            .map(|(i, _)| has_bodies && i == 0 && bodies[&body_ids[0]] == Pose::identity())
+            .collect(),
         observations,
         distances,
         priors: vec![],
         pixel_sigma: 1.0,
     };
     // Drop observations that do not project at the start (a bad pose would poison LM).
-    let keep: Vec<bool> = problem.observations.iter().map(|o| problem.point_in_camera(o).z > 0.0).collect();
+    let keep: Vec<bool> = problem
+        .observations
+        .iter()
+        .map(|o| problem.point_in_camera(o).z > 0.0)
+        .collect();
     let mut it = keep.iter();
-    problem.observations.retain(|_| *it.next().unwrap_or(&false));
+    problem
+        .observations
+        .retain(|_| *it.next().unwrap_or(&false));
     let _ = problem.solve(opts);
     for (r, key) in keys.iter().enumerate() {
         poses.insert(*key, problem.world_from_rig[r].inverse());
@@ -395,6 +488,15 @@ fn refine_scene(
     for (i, b) in body_ids.iter().enumerate() {
         bodies.insert(*b, problem.world_from_body[i]);
     }
-    let n = problem.observations.len().max(1) as f64;
-    (problem.observations.iter().filter_map(|o| problem.residual(o)).map(|r| r.norm_squared()).sum::<f64>() / n).sqrt()
+    let mut norms: Vec<f64> = problem
+        .observations
+        .iter()
+        .filter_map(|o| problem.residual(o))
+        .map(|r| r.norm())
+        .collect();
+    norms.sort_by(f64::total_cmp);
+    // Median residual norm of a 2D Gaussian is σ·√(2 ln 2).
+    norms
+        .get(norms.len() / 2)
+        .map_or(f64::NAN, |m| m / 1.177_410_022_515_474_6)
 }

@@ -17,7 +17,17 @@ pub fn relative_pose(x1: &[Vec2], x2: &[Vec2]) -> Option<Pose> {
     let mut m = DMatrix::zeros(x1.len(), 9);
     for i in 0..x1.len() {
         let (a, b) = (n1[i], n2[i]);
-        let row = [b.x * a.x, b.x * a.y, b.x, b.y * a.x, b.y * a.y, b.y, a.x, a.y, 1.0];
+        let row = [
+            b.x * a.x,
+            b.x * a.y,
+            b.x,
+            b.y * a.x,
+            b.y * a.y,
+            b.y,
+            a.x,
+            a.y,
+            1.0,
+        ];
         for k in 0..9 {
             m[(i, k)] = row[k];
         }
@@ -67,7 +77,12 @@ pub fn triangulate(views: &[(Pose, Vec2)]) -> Option<Vec3> {
         a += r1 * r1.transpose() + r2 * r2.transpose();
     }
     let eig = a.symmetric_eigen();
-    let k = eig.eigenvalues.iter().enumerate().min_by(|x, y| x.1.total_cmp(y.1))?.0;
+    let k = eig
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|x, y| x.1.total_cmp(y.1))?
+        .0;
     let h = eig.eigenvectors.column(k);
     if h[3].abs() < 1e-12 {
         return None;
@@ -90,7 +105,9 @@ pub fn parallax(cam1_from_world: &Pose, cam2_from_world: &Pose, p: &Vec3) -> f64
     let c1 = cam1_from_world.inverse().trans;
     let c2 = cam2_from_world.inverse().trans;
     let (a, b) = (p - c1, p - c2);
-    (a.dot(&b) / (a.norm() * b.norm()).max(1e-300)).clamp(-1.0, 1.0).acos()
+    (a.dot(&b) / (a.norm() * b.norm()).max(1e-300))
+        .clamp(-1.0, 1.0)
+        .acos()
 }
 
 #[cfg(test)]
@@ -99,10 +116,22 @@ mod tests {
 
     #[test]
     fn essential_decomposition_and_triangulation_exact() {
-        let pts: Vec<Vec3> = (0..15).map(|i| Vec3::new(-0.7 + 0.1 * i as f64, 0.3 * ((i % 4) as f64 - 1.5), 3.0 + 0.4 * ((i * 5) % 7) as f64)).collect();
+        let pts: Vec<Vec3> = (0..15)
+            .map(|i| {
+                Vec3::new(
+                    -0.7 + 0.1 * i as f64,
+                    0.3 * ((i % 4) as f64 - 1.5),
+                    3.0 + 0.4 * ((i * 5) % 7) as f64,
+                )
+            })
+            .collect();
         let c2 = Pose::from_rotvec(Vec3::new(0.05, -0.2, 0.1), Vec3::new(-0.6, 0.1, 0.2));
         let x1: Vec<Vec2> = pts.iter().map(|p| p.xy() / p.z).collect();
-        let x2: Vec<Vec2> = pts.iter().map(|p| c2.apply(p)).map(|p| p.xy() / p.z).collect();
+        let x2: Vec<Vec2> = pts
+            .iter()
+            .map(|p| c2.apply(p))
+            .map(|p| p.xy() / p.z)
+            .collect();
         let est = relative_pose(&x1, &x2).unwrap();
         assert!(so3::angle_between(&est.rot, &c2.rot) < 1e-9);
         assert!((est.trans - c2.trans.normalize()).norm() < 1e-9);

@@ -14,8 +14,19 @@ use serde::{Deserialize, Serialize};
 #[serde(tag = "model", rename_all = "lowercase")]
 pub enum CameraModel {
     Pinhole,
-    Radtan { k1: f64, k2: f64, p1: f64, p2: f64, k3: f64 },
-    Equidistant { k1: f64, k2: f64, k3: f64, k4: f64 },
+    Radtan {
+        k1: f64,
+        k2: f64,
+        p1: f64,
+        p2: f64,
+        k3: f64,
+    },
+    Equidistant {
+        k1: f64,
+        k2: f64,
+        k3: f64,
+        k4: f64,
+    },
 }
 
 impl CameraModel {
@@ -64,7 +75,8 @@ impl CameraModel {
                 let t2 = th * th;
                 let poly = 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)));
                 let thd = th * poly;
-                let dthd_dth = 1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)));
+                let dthd_dth =
+                    1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)));
                 let dth_dr = 1.0 / (1.0 + r * r);
                 let s = thd / r;
                 let ds_dr = (dthd_dth * dth_dr * r - thd) / (r * r);
@@ -98,7 +110,15 @@ const MIN_DEPTH: f64 = 1e-6;
 
 impl Camera {
     pub fn pinhole(fx: f64, fy: f64, cx: f64, cy: f64, width: u32, height: u32) -> Self {
-        Self { model: CameraModel::Pinhole, fx, fy, cx, cy, width, height }
+        Self {
+            model: CameraModel::Pinhole,
+            fx,
+            fy,
+            cx,
+            cy,
+            width,
+            height,
+        }
     }
 
     /// Project a point in camera coordinates to pixels; `None` behind the camera.
@@ -146,7 +166,10 @@ impl Camera {
 
     /// Is the pixel inside the image (with the pixel-centre convention)?
     pub fn in_image(&self, uv: &Vec2) -> bool {
-        uv.x >= -0.5 && uv.y >= -0.5 && uv.x <= self.width as f64 - 0.5 && uv.y <= self.height as f64 - 0.5
+        uv.x >= -0.5
+            && uv.y >= -0.5
+            && uv.x <= self.width as f64 - 0.5
+            && uv.y <= self.height as f64 - 0.5
     }
 }
 
@@ -159,16 +182,34 @@ mod tests {
         vec![
             base.clone(),
             Camera {
-                model: CameraModel::Radtan { k1: -0.28, k2: 0.08, p1: 1e-3, p2: -5e-4, k3: -0.01 },
+                model: CameraModel::Radtan {
+                    k1: -0.28,
+                    k2: 0.08,
+                    p1: 1e-3,
+                    p2: -5e-4,
+                    k3: -0.01,
+                },
                 ..base.clone()
             },
-            Camera { model: CameraModel::Equidistant { k1: 0.05, k2: -0.01, k3: 0.003, k4: -0.001 }, ..base },
+            Camera {
+                model: CameraModel::Equidistant {
+                    k1: 0.05,
+                    k2: -0.01,
+                    k3: 0.003,
+                    k4: -0.001,
+                },
+                ..base
+            },
         ]
     }
 
     #[test]
     fn projection_jacobian_matches_finite_differences() {
-        let points = [Vec3::new(0.3, -0.2, 2.0), Vec3::new(-0.5, 0.4, 1.0), Vec3::new(0.01, 0.02, 5.0)];
+        let points = [
+            Vec3::new(0.3, -0.2, 2.0),
+            Vec3::new(-0.5, 0.4, 1.0),
+            Vec3::new(0.01, 0.02, 5.0),
+        ];
         for cam in cameras() {
             for p in points {
                 let (_, j) = cam.project_with_jacobian(&p).unwrap();
@@ -180,7 +221,11 @@ mod tests {
                     pm[k] -= h;
                     let fd = (cam.project(&pp).unwrap() - cam.project(&pm).unwrap()) / (2.0 * h);
                     let an = j.column(k);
-                    assert!((fd - an).norm() < 1e-5 * (1.0 + an.norm()), "{:?} col {k}: fd {fd:?} an {an:?}", cam.model);
+                    assert!(
+                        (fd - an).norm() < 1e-5 * (1.0 + an.norm()),
+                        "{:?} col {k}: fd {fd:?} an {an:?}",
+                        cam.model
+                    );
                 }
             }
         }
@@ -189,7 +234,11 @@ mod tests {
     #[test]
     fn unprojection_inverts_projection() {
         for cam in cameras() {
-            for p in [Vec3::new(0.3, -0.2, 1.0), Vec3::new(-0.6, 0.3, 1.0), Vec3::new(0.0, 0.0, 1.0)] {
+            for p in [
+                Vec3::new(0.3, -0.2, 1.0),
+                Vec3::new(-0.6, 0.3, 1.0),
+                Vec3::new(0.0, 0.0, 1.0),
+            ] {
                 let uv = cam.project(&p).unwrap();
                 let xy = cam.unproject(&uv).unwrap();
                 assert!((xy - Vec2::new(p.x, p.y)).norm() < 1e-10, "{:?}", cam.model);

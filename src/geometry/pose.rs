@@ -19,7 +19,10 @@ impl Default for Pose {
 
 impl Pose {
     pub fn identity() -> Self {
-        Self { rot: Mat3::identity(), trans: Vec3::zeros() }
+        Self {
+            rot: Mat3::identity(),
+            trans: Vec3::zeros(),
+        }
     }
 
     pub fn new(rot: Mat3, trans: Vec3) -> Self {
@@ -28,7 +31,10 @@ impl Pose {
 
     /// From a rotation vector (radians) and a translation.
     pub fn from_rotvec(w: Vec3, trans: Vec3) -> Self {
-        Self { rot: so3::exp(&w), trans }
+        Self {
+            rot: so3::exp(&w),
+            trans,
+        }
     }
 
     pub fn apply(&self, p: &Vec3) -> Vec3 {
@@ -37,7 +43,10 @@ impl Pose {
 
     pub fn inverse(&self) -> Self {
         let rt = self.rot.transpose();
-        Self { rot: rt, trans: -(rt * self.trans) }
+        Self {
+            rot: rt,
+            trans: -(rt * self.trans),
+        }
     }
 
     /// The 4×4 homogeneous matrix, row-major rows.
@@ -54,21 +63,30 @@ impl Pose {
 
     /// Rotation angle (rad) and translation distance between two transforms.
     pub fn distance(&self, other: &Pose) -> (f64, f64) {
-        (so3::angle_between(&self.rot, &other.rot), (self.trans - other.trans).norm())
+        (
+            so3::angle_between(&self.rot, &other.rot),
+            (self.trans - other.trans).norm(),
+        )
     }
 
     /// Left perturbation in the decoupled parametrisation used by every solver here:
     /// `rot ← exp(dφ)·rot`, `trans ← trans + dt`. Decoupled so that the translation
     /// block of a covariance is directly metres in the outer frame.
     pub fn perturbed(&self, dt: &Vec3, dphi: &Vec3) -> Self {
-        Self { rot: so3::exp(dphi) * self.rot, trans: self.trans + dt }
+        Self {
+            rot: so3::exp(dphi) * self.rot,
+            trans: self.trans + dt,
+        }
     }
 }
 
 impl std::ops::Mul for Pose {
     type Output = Pose;
     fn mul(self, rhs: Pose) -> Pose {
-        Pose { rot: self.rot * rhs.rot, trans: self.rot * rhs.trans + self.trans }
+        Pose {
+            rot: self.rot * rhs.rot,
+            trans: self.rot * rhs.trans + self.trans,
+        }
     }
 }
 
@@ -84,6 +102,8 @@ mod tests {
         let a_from_c = a_from_b * b_from_c;
         assert!((a_from_c.apply(&p_c) - a_from_b.apply(&b_from_c.apply(&p_c))).norm() < 1e-12);
         let id = a_from_c * a_from_c.inverse();
-        assert!(id.distance(&Pose::identity()).0 < 1e-12 && id.distance(&Pose::identity()).1 < 1e-12);
+        assert!(
+            id.distance(&Pose::identity()).0 < 1e-12 && id.distance(&Pose::identity()).1 < 1e-12
+        );
     }
 }

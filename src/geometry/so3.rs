@@ -29,7 +29,11 @@ pub fn exp(w: &Vec3) -> Mat3 {
 /// Near π the usual `(R - Rᵀ)/(2 sin θ)` formula loses all precision, so the axis is
 /// read from the symmetric part instead (the largest diagonal of `R + I`).
 pub fn log(r: &Mat3) -> Vec3 {
-    let v = Vec3::new(r[(2, 1)] - r[(1, 2)], r[(0, 2)] - r[(2, 0)], r[(1, 0)] - r[(0, 1)]);
+    let v = Vec3::new(
+        r[(2, 1)] - r[(1, 2)],
+        r[(0, 2)] - r[(2, 0)],
+        r[(1, 0)] - r[(0, 1)],
+    );
     // v = 2 sin θ · axis; atan2 keeps full precision at both ends of [0, π].
     let cos = (r.trace() - 1.0) * 0.5;
     let theta = (0.5 * v.norm()).atan2(cos);
@@ -86,7 +90,9 @@ pub fn to_rpy(r: &Mat3) -> (f64, f64, f64) {
 
 /// Unit quaternion `(w, x, y, z)` of `r`, with `w ≥ 0`.
 pub fn to_quaternion(r: &Mat3) -> [f64; 4] {
-    let q = nalgebra::UnitQuaternion::from_rotation_matrix(&nalgebra::Rotation3::from_matrix_unchecked(*r));
+    let q = nalgebra::UnitQuaternion::from_rotation_matrix(
+        &nalgebra::Rotation3::from_matrix_unchecked(*r),
+    );
     let s = if q.w < 0.0 { -1.0 } else { 1.0 };
     [s * q.w, s * q.i, s * q.j, s * q.k]
 }
@@ -116,11 +122,17 @@ mod tests {
 
     #[test]
     fn rpy_and_quaternion_roundtrip() {
-        let r = from_rpy(-179f64.to_radians(), -4f64.to_radians(), 171f64.to_radians());
+        let r = from_rpy(
+            -179f64.to_radians(),
+            -4f64.to_radians(),
+            171f64.to_radians(),
+        );
         let (ro, pi, ya) = to_rpy(&r);
         assert!((from_rpy(ro, pi, ya) - r).norm() < 1e-12);
         let q = to_quaternion(&r);
-        let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(q[0], q[1], q[2], q[3]));
+        let uq = nalgebra::UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+            q[0], q[1], q[2], q[3],
+        ));
         assert!((uq.to_rotation_matrix().matrix() - r).norm() < 1e-12);
     }
 

@@ -61,7 +61,14 @@ pub struct Intrinsics {
 #[serde(tag = "type", rename_all = "snake_case", deny_unknown_fields)]
 pub enum TargetSpec {
     /// Kalibr AprilGrid: `rows × cols` tags of side `tag_size` (m), gap `tag_spacing × tag_size`.
-    Aprilgrid { id: String, rows: u32, cols: u32, tag_size: f64, tag_spacing: f64, first_id: u32 },
+    Aprilgrid {
+        id: String,
+        rows: u32,
+        cols: u32,
+        tag_size: f64,
+        tag_spacing: f64,
+        first_id: u32,
+    },
     /// Scattered AprilTags of known size, layout unknown. `ids` restricts which tags belong here.
     Apriltags {
         id: String,
@@ -70,9 +77,16 @@ pub enum TargetSpec {
         ids: Option<Vec<u32>>,
     },
     /// Wu's line target (vanishing method): line length L1 and spacing L2 (m).
-    LineTarget { id: String, length: f64, spacing: f64 },
+    LineTarget {
+        id: String,
+        length: f64,
+        spacing: f64,
+    },
     /// Points of known coordinates (m) in the target's own frame: a rigid body.
-    Points { id: String, points: BTreeMap<String, [f64; 3]> },
+    Points {
+        id: String,
+        points: BTreeMap<String, [f64; 3]>,
+    },
 }
 
 impl TargetSpec {

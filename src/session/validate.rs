@@ -112,7 +112,11 @@ pub fn parse_session(bytes: &[u8]) -> Result<Session, InputError> {
     let de = &mut serde_json::Deserializer::from_slice(bytes);
     let manifest: SessionManifest = serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
-        let path = if path == "." { "(document)".to_string() } else { path };
+        let path = if path == "." {
+            "(document)".to_string()
+        } else {
+            path
+        };
         InputError::new(path, e.inner().to_string())
     })?;
     validate(manifest)
@@ -126,18 +130,61 @@ fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
     let model = match spec.model.as_str() {
         "pinhole" if d.is_empty() || d.iter().all(|x| *x == 0.0) => CameraModel::Pinhole,
         "pinhole" => {
-            return Err(InputError::new(format!("{at}.distortion"), "no coefficients for model pinhole (use radtan or equidistant)"))
+            return Err(InputError::new(
+                format!("{at}.distortion"),
+                "no coefficients for model pinhole (use radtan or equidistant)",
+            ))
         }
-        "radtan" if d.len() == 4 || d.len() == 5 => {
-            CameraModel::Radtan { k1: d[0], k2: d[1], p1: d[2], p2: d[3], k3: d.get(4).copied().unwrap_or(0.0) }
+        "radtan" if d.len() == 4 || d.len() == 5 => CameraModel::Radtan {
+            k1: d[0],
+            k2: d[1],
+            p1: d[2],
+            p2: d[3],
+            k3: d.get(4).copied().unwrap_or(0.0),
+        },
+        "radtan" => {
+            return Err(InputError::new(
+                format!("{at}.distortion"),
+                format!(
+                    "4 or 5 coefficients [k1, k2, p1, p2, (k3)] for radtan, got {}",
+                    d.len()
+                ),
+            ))
         }
-        "radtan" => return Err(InputError::new(format!("{at}.distortion"), format!("4 or 5 coefficients [k1, k2, p1, p2, (k3)] for radtan, got {}", d.len()))),
-        "equidistant" if d.len() == 4 => CameraModel::Equidistant { k1: d[0], k2: d[1], k3: d[2], k4: d[3] },
-        "equidistant" => return Err(InputError::new(format!("{at}.distortion"), format!("4 coefficients [k1, k2, k3, k4] for equidistant, got {}", d.len()))),
-        other => return Err(InputError::new(format!("{at}.model"), format!("one of pinhole, radtan, equidistant, got {other:?}"))),
+        "equidistant" if d.len() == 4 => CameraModel::Equidistant {
+            k1: d[0],
+            k2: d[1],
+            k3: d[2],
+            k4: d[3],
+        },
+        "equidistant" => {
+            return Err(InputError::new(
+                format!("{at}.distortion"),
+                format!(
+                    "4 coefficients [k1, k2, k3, k4] for equidistant, got {}",
+                    d.len()
+                ),
+            ))
+        }
+        other => {
+            return Err(InputError::new(
+                format!("{at}.model"),
+                format!("one of pinhole, radtan, equidistant, got {other:?}"),
+            ))
+        }
     };
-    if spec.width == 0 || spec.height == 0 || spec.width > MAX_IMAGE_SIDE || spec.height > MAX_IMAGE_SIDE {
-        return Err(InputError::new(format!("{at}.width"), format!("width and height between 1 and {MAX_IMAGE_SIDE} pixels, got {}×{}", spec.width, spec.height)));
+    if spec.width == 0
+        || spec.height == 0
+        || spec.width > MAX_IMAGE_SIDE
+        || spec.height > MAX_IMAGE_SIDE
+    {
+        return Err(InputError::new(
+            format!("{at}.width"),
+            format!(
+                "width and height between 1 and {MAX_IMAGE_SIDE} pixels, got {}×{}",
+                spec.width, spec.height
+            ),
+        ));
     }
     let k = &spec.intrinsics;
     for (name, x) in [("fx", k.fx), ("fy", k.fy), ("cx", k.cx), ("cy", k.cy)] {
@@ -145,15 +192,32 @@ fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
     }
     let (w, h) = (spec.width as f64, spec.height as f64);
     if k.fx <= 0.0 || k.fy <= 0.0 || k.fx > 100.0 * w || k.fy > 100.0 * h {
-        return Err(InputError::new(format!("{at}.intrinsics.fx"), format!("positive focal lengths below 100× the image size, got fx={} fy={}", k.fx, k.fy)));
+        return Err(InputError::new(
+            format!("{at}.intrinsics.fx"),
+            format!(
+                "positive focal lengths below 100× the image size, got fx={} fy={}",
+                k.fx, k.fy
+            ),
+        ));
     }
     if k.cx < -0.5 || k.cx > w - 0.5 || k.cy < -0.5 || k.cy > h - 0.5 {
         return Err(InputError::new(
             format!("{at}.intrinsics.cx"),
-            format!("a principal point inside the {}×{} image, got ({}, {})", spec.width, spec.height, k.cx, k.cy),
+            format!(
+                "a principal point inside the {}×{} image, got ({}, {})",
+                spec.width, spec.height, k.cx, k.cy
+            ),
         ));
     }
-    Ok(Camera { model, fx: k.fx, fy: k.fy, cx: k.cx, cy: k.cy, width: spec.width, height: spec.height })
+    Ok(Camera {
+        model,
+        fx: k.fx,
+        fy: k.fy,
+        cx: k.cx,
+        cy: k.cy,
+        width: spec.width,
+        height: spec.height,
+    })
 }
 
 /// Parse `tag:<id>:<corner>`.
@@ -172,7 +236,10 @@ fn tag_corner(x0: f64, y0: f64, s: f64, c: usize) -> Vec3 {
 }
 
 /// Resolve a point id against the targets: a body point if a target defines it, free otherwise.
-pub fn resolve_points(targets: &[TargetSpec], ids: impl IntoIterator<Item = String>) -> ResolvedPoints {
+pub fn resolve_points(
+    targets: &[TargetSpec],
+    ids: impl IntoIterator<Item = String>,
+) -> ResolvedPoints {
     let mut out = ResolvedPoints::default();
     let mut tag_bodies: HashMap<(usize, u32), usize> = HashMap::new();
     let mut target_body: HashMap<usize, usize> = HashMap::new();
@@ -183,30 +250,53 @@ pub fn resolve_points(targets: &[TargetSpec], ids: impl IntoIterator<Item = Stri
         let mut kind = PointKind::Free;
         for (ti, t) in targets.iter().enumerate() {
             match t {
-                TargetSpec::Aprilgrid { id: name, rows, cols, tag_size, tag_spacing, first_id } => {
+                TargetSpec::Aprilgrid {
+                    id: name,
+                    rows,
+                    cols,
+                    tag_size,
+                    tag_spacing,
+                    first_id,
+                } => {
                     if let Some((tag, c)) = parse_tag_point(&id) {
                         if tag >= *first_id && tag < first_id + rows * cols {
                             let k = tag - first_id;
                             let (r, col) = ((k / cols) as f64, (k % cols) as f64);
                             let pitch = tag_size * (1.0 + tag_spacing);
                             let body = *target_body.entry(ti).or_insert_with(|| {
-                                out.bodies.push(Body { name: name.clone(), planar: true });
+                                out.bodies.push(Body {
+                                    name: name.clone(),
+                                    planar: true,
+                                });
                                 out.bodies.len() - 1
                             });
-                            kind = PointKind::Body { body, local: tag_corner(col * pitch, r * pitch, *tag_size, c) };
+                            kind = PointKind::Body {
+                                body,
+                                local: tag_corner(col * pitch, r * pitch, *tag_size, c),
+                            };
                             break;
                         }
                     }
                 }
-                TargetSpec::Apriltags { id: name, tag_size, ids } => {
+                TargetSpec::Apriltags {
+                    id: name,
+                    tag_size,
+                    ids,
+                } => {
                     if let Some((tag, c)) = parse_tag_point(&id) {
                         if ids.as_ref().is_none_or(|v| v.contains(&tag)) {
                             let body = *tag_bodies.entry((ti, tag)).or_insert_with(|| {
-                                out.bodies.push(Body { name: format!("{name}/tag:{tag}"), planar: true });
+                                out.bodies.push(Body {
+                                    name: format!("{name}/tag:{tag}"),
+                                    planar: true,
+                                });
                                 out.bodies.len() - 1
                             });
                             let h = tag_size / 2.0;
-                            kind = PointKind::Body { body, local: tag_corner(-h, -h, *tag_size, c) };
+                            kind = PointKind::Body {
+                                body,
+                                local: tag_corner(-h, -h, *tag_size, c),
+                            };
                             break;
                         }
                     }
@@ -214,10 +304,16 @@ pub fn resolve_points(targets: &[TargetSpec], ids: impl IntoIterator<Item = Stri
                 TargetSpec::Points { id: name, points } => {
                     if let Some(xyz) = points.get(&id) {
                         let body = *target_body.entry(ti).or_insert_with(|| {
-                            out.bodies.push(Body { name: name.clone(), planar: points_planar(points) });
+                            out.bodies.push(Body {
+                                name: name.clone(),
+                                planar: points_planar(points),
+                            });
                             out.bodies.len() - 1
                         });
-                        kind = PointKind::Body { body, local: Vec3::new(xyz[0], xyz[1], xyz[2]) };
+                        kind = PointKind::Body {
+                            body,
+                            local: Vec3::new(xyz[0], xyz[1], xyz[2]),
+                        };
                         break;
                     }
                 }
@@ -231,7 +327,10 @@ pub fn resolve_points(targets: &[TargetSpec], ids: impl IntoIterator<Item = Stri
 
 /// Are the points (nearly) coplanar? Decides homography vs DLT for their pose.
 fn points_planar(points: &BTreeMap<String, [f64; 3]>) -> bool {
-    let pts: Vec<Vec3> = points.values().map(|p| Vec3::new(p[0], p[1], p[2])).collect();
+    let pts: Vec<Vec3> = points
+        .values()
+        .map(|p| Vec3::new(p[0], p[1], p[2]))
+        .collect();
     crate::calib::pnp::is_planar(&pts)
 }
 
@@ -243,23 +342,46 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
         return Err(InputError::new("cameras", "at least one camera"));
     }
     if m.cameras.len() > MAX_CAMERAS {
-        return Err(InputError::new("cameras", format!("at most {MAX_CAMERAS} cameras, got {}", m.cameras.len())));
+        return Err(InputError::new(
+            "cameras",
+            format!("at most {MAX_CAMERAS} cameras, got {}", m.cameras.len()),
+        ));
     }
     if m.frames.len() > MAX_FRAMES {
-        return Err(InputError::new("frames", format!("at most {MAX_FRAMES} frames, got {}", m.frames.len())));
+        return Err(InputError::new(
+            "frames",
+            format!("at most {MAX_FRAMES} frames, got {}", m.frames.len()),
+        ));
     }
     let mut cameras = Vec::new();
     let mut seen = HashSet::new();
     for (i, c) in m.cameras.iter().enumerate() {
         let at = format!("cameras[{i}]");
         if c.id.is_empty() || !seen.insert(c.id.clone()) {
-            return Err(InputError::new(format!("{at}.id"), format!("a non-empty id unique among cameras, got {:?}", c.id)));
+            return Err(InputError::new(
+                format!("{at}.id"),
+                format!("a non-empty id unique among cameras, got {:?}", c.id),
+            ));
         }
-        cameras.push(NamedCamera { id: c.id.clone(), camera: camera_from_spec(c, &at)? });
+        cameras.push(NamedCamera {
+            id: c.id.clone(),
+            camera: camera_from_spec(c, &at)?,
+        });
     }
-    let cam_index: HashMap<&str, usize> = cameras.iter().enumerate().map(|(i, c)| (c.id.as_str(), i)).collect();
+    let cam_index: HashMap<&str, usize> = cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (c.id.as_str(), i))
+        .collect();
     let reference = *cam_index.get(m.reference_camera.as_str()).ok_or_else(|| {
-        InputError::new("reference_camera", format!("one of the camera ids {:?}, got {:?}", cameras.iter().map(|c| &c.id).collect::<Vec<_>>(), m.reference_camera))
+        InputError::new(
+            "reference_camera",
+            format!(
+                "one of the camera ids {:?}, got {:?}",
+                cameras.iter().map(|c| &c.id).collect::<Vec<_>>(),
+                m.reference_camera
+            ),
+        )
     })?;
 
     let mut target_ids = HashSet::new();
@@ -267,46 +389,76 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
     for (i, t) in m.targets.iter().enumerate() {
         let at = format!("targets[{i}]");
         if t.id().is_empty() || !target_ids.insert(t.id().to_string()) {
-            return Err(InputError::new(format!("{at}.id"), format!("a non-empty id unique among targets, got {:?}", t.id())));
+            return Err(InputError::new(
+                format!("{at}.id"),
+                format!("a non-empty id unique among targets, got {:?}", t.id()),
+            ));
         }
         let positive = |name: &str, x: f64| -> Result<(), InputError> {
             if x.is_finite() && x > 0.0 {
                 Ok(())
             } else {
-                Err(InputError::new(format!("{at}.{name}"), format!("a positive length in metres, got {x}")))
+                Err(InputError::new(
+                    format!("{at}.{name}"),
+                    format!("a positive length in metres, got {x}"),
+                ))
             }
         };
         match t {
-            TargetSpec::Aprilgrid { rows, cols, tag_size, tag_spacing, .. } => {
+            TargetSpec::Aprilgrid {
+                rows,
+                cols,
+                tag_size,
+                tag_spacing,
+                ..
+            } => {
                 positive("tag_size", *tag_size)?;
                 if !(tag_spacing.is_finite() && *tag_spacing >= 0.0) {
-                    return Err(InputError::new(format!("{at}.tag_spacing"), "a non-negative ratio of the tag size"));
+                    return Err(InputError::new(
+                        format!("{at}.tag_spacing"),
+                        "a non-negative ratio of the tag size",
+                    ));
                 }
                 if *rows == 0 || *cols == 0 || rows * cols > 100_000 {
-                    return Err(InputError::new(format!("{at}.rows"), "between 1 and 100000 tags in the grid"));
+                    return Err(InputError::new(
+                        format!("{at}.rows"),
+                        "between 1 and 100000 tags in the grid",
+                    ));
                 }
             }
             TargetSpec::Apriltags { tag_size, .. } => positive("tag_size", *tag_size)?,
-            TargetSpec::LineTarget { length, spacing, .. } => {
+            TargetSpec::LineTarget {
+                length, spacing, ..
+            } => {
                 positive("length", *length)?;
                 positive("spacing", *spacing)?;
             }
             TargetSpec::Points { points, .. } => {
                 if points.len() < 4 {
-                    return Err(InputError::new(format!("{at}.points"), "at least 4 points with coordinates"));
+                    return Err(InputError::new(
+                        format!("{at}.points"),
+                        "at least 4 points with coordinates",
+                    ));
                 }
                 for (pid, xyz) in points {
                     for (k, x) in xyz.iter().enumerate() {
                         finite(format!("{at}.points.{pid}[{k}]"), *x)?;
                     }
                     if let Some(prev) = point_owner.insert(pid, i) {
-                        return Err(InputError::new(format!("{at}.points.{pid}"), format!("a point id not already defined by targets[{prev}]")));
+                        return Err(InputError::new(
+                            format!("{at}.points.{pid}"),
+                            format!("a point id not already defined by targets[{prev}]"),
+                        ));
                     }
                 }
             }
         }
     }
-    if m.method == Method::Motion && m.targets.iter().any(|t| matches!(t, TargetSpec::LineTarget { .. })) {
+    if m.method == Method::Motion
+        && m.targets
+            .iter()
+            .any(|t| matches!(t, TargetSpec::LineTarget { .. }))
+    {
         return Err(InputError::new("targets", "no line_target in a motion-method session (line targets belong to method \"vanishing\")"));
     }
 
@@ -315,11 +467,17 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
     let mut all_ids: Vec<String> = Vec::new();
     for (fi, f) in m.frames.iter().enumerate() {
         if !indices.insert(f.index) {
-            return Err(InputError::new(format!("frames[{fi}].index"), format!("a frame index unique in the session, {} repeats", f.index)));
+            return Err(InputError::new(
+                format!("frames[{fi}].index"),
+                format!("a frame index unique in the session, {} repeats", f.index),
+            ));
         }
         for cam in f.images.keys() {
             if !cam_index.contains_key(cam.as_str()) {
-                return Err(InputError::new(format!("frames[{fi}].images.{cam}"), "a camera id declared in cameras[]"));
+                return Err(InputError::new(
+                    format!("frames[{fi}].images.{cam}"),
+                    "a camera id declared in cameras[]",
+                ));
             }
         }
         if !f.images.is_empty() && f.observations.is_empty() {
@@ -329,7 +487,12 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             ));
         }
         for (cam, obs) in &f.observations {
-            let ci = *cam_index.get(cam.as_str()).ok_or_else(|| InputError::new(format!("frames[{fi}].observations.{cam}"), "a camera id declared in cameras[]"))?;
+            let ci = *cam_index.get(cam.as_str()).ok_or_else(|| {
+                InputError::new(
+                    format!("frames[{fi}].observations.{cam}"),
+                    "a camera id declared in cameras[]",
+                )
+            })?;
             let c = &cameras[ci].camera;
             let mut in_frame = HashSet::new();
             for (oi, o) in obs.iter().enumerate() {
@@ -337,10 +500,22 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
                 finite(format!("{at}.u"), o.u)?;
                 finite(format!("{at}.v"), o.v)?;
                 if !c.in_image(&Vec2::new(o.u, o.v)) {
-                    return Err(InputError::new(format!("{at}.u"), format!("a pixel inside the {}×{} image of camera {cam}, got ({}, {})", c.width, c.height, o.u, o.v)));
+                    return Err(InputError::new(
+                        format!("{at}.u"),
+                        format!(
+                            "a pixel inside the {}×{} image of camera {cam}, got ({}, {})",
+                            c.width, c.height, o.u, o.v
+                        ),
+                    ));
                 }
                 if o.point.is_empty() || !in_frame.insert(o.point.as_str()) {
-                    return Err(InputError::new(format!("{at}.point"), format!("a non-empty point id seen once per image, got {:?}", o.point)));
+                    return Err(InputError::new(
+                        format!("{at}.point"),
+                        format!(
+                            "a non-empty point id seen once per image, got {:?}",
+                            o.point
+                        ),
+                    ));
                 }
                 all_ids.push(o.point.clone());
             }
@@ -355,39 +530,87 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             let mut observations = vec![Vec::new(); cameras.len()];
             for (cam, obs) in &f.observations {
                 let ci = cam_index[cam.as_str()];
-                observations[ci] = obs.iter().filter_map(|o| points.get(&o.point).map(|p| Observation { point: p, uv: Vec2::new(o.u, o.v) })).collect();
+                observations[ci] = obs
+                    .iter()
+                    .filter_map(|o| {
+                        points.get(&o.point).map(|p| Observation {
+                            point: p,
+                            uv: Vec2::new(o.u, o.v),
+                        })
+                    })
+                    .collect();
             }
-            Frame { index: f.index, observations }
+            Frame {
+                index: f.index,
+                observations,
+            }
         })
         .collect();
 
     let mut distances = Vec::new();
     for (i, s) in m.scale.iter().enumerate() {
         let at = format!("scale[{i}]");
-        let a = points.get(&s.a).ok_or_else(|| InputError::new(format!("{at}.a"), format!("a point id observed in some frame, got {:?}", s.a)))?;
-        let b = points.get(&s.b).ok_or_else(|| InputError::new(format!("{at}.b"), format!("a point id observed in some frame, got {:?}", s.b)))?;
+        let a = points.get(&s.a).ok_or_else(|| {
+            InputError::new(
+                format!("{at}.a"),
+                format!("a point id observed in some frame, got {:?}", s.a),
+            )
+        })?;
+        let b = points.get(&s.b).ok_or_else(|| {
+            InputError::new(
+                format!("{at}.b"),
+                format!("a point id observed in some frame, got {:?}", s.b),
+            )
+        })?;
         if a == b {
-            return Err(InputError::new(format!("{at}.b"), "a point different from a"));
+            return Err(InputError::new(
+                format!("{at}.b"),
+                "a point different from a",
+            ));
         }
         if !(s.distance.is_finite() && s.distance > 0.0) {
-            return Err(InputError::new(format!("{at}.distance"), format!("a positive distance in metres, got {}", s.distance)));
+            return Err(InputError::new(
+                format!("{at}.distance"),
+                format!("a positive distance in metres, got {}", s.distance),
+            ));
         }
         let sigma = s.sigma.unwrap_or(DEFAULT_DISTANCE_SIGMA);
         if !(sigma.is_finite() && sigma > 0.0) {
-            return Err(InputError::new(format!("{at}.sigma"), format!("a positive standard deviation in metres, got {sigma}")));
+            return Err(InputError::new(
+                format!("{at}.sigma"),
+                format!("a positive standard deviation in metres, got {sigma}"),
+            ));
         }
-        distances.push(Distance { a, b, distance: s.distance, sigma });
+        distances.push(Distance {
+            a,
+            b,
+            distance: s.distance,
+            sigma,
+        });
     }
 
     let mut height_priors = vec![None; cameras.len()];
     if let Some(p) = &m.priors {
         for (cam, h) in &p.height_offsets {
-            let ci = *cam_index.get(cam.as_str()).ok_or_else(|| InputError::new(format!("priors.height_offsets.{cam}"), "a camera id declared in cameras[]"))?;
+            let ci = *cam_index.get(cam.as_str()).ok_or_else(|| {
+                InputError::new(
+                    format!("priors.height_offsets.{cam}"),
+                    "a camera id declared in cameras[]",
+                )
+            })?;
             height_priors[ci] = Some(finite(format!("priors.height_offsets.{cam}"), *h)?);
         }
     }
 
-    Ok(Session { manifest: m, cameras, reference, frames, points, distances, height_priors })
+    Ok(Session {
+        manifest: m,
+        cameras,
+        reference,
+        frames,
+        points,
+        distances,
+        height_priors,
+    })
 }
 
 #[cfg(test)]
@@ -416,7 +639,9 @@ mod tests {
         let p = s.points.get("tag:4:2").unwrap();
         // tag 4 is row 1, col 1; pitch 0.13; corner 2 is (+s, +s).
         match s.points.kinds[p] {
-            PointKind::Body { local, .. } => assert!((local - Vec3::new(0.23, 0.23, 0.0)).norm() < 1e-12),
+            PointKind::Body { local, .. } => {
+                assert!((local - Vec3::new(0.23, 0.23, 0.0)).norm() < 1e-12)
+            }
             k => panic!("{k:?}"),
         }
         assert_eq!(s.points.kinds[s.points.get("p7").unwrap()], PointKind::Free);

@@ -86,7 +86,13 @@ pub struct LmOptions {
 
 impl Default for LmOptions {
     fn default() -> Self {
-        Self { max_iterations: 100, loss: Loss::Squared, function_tolerance: 1e-12, parameter_tolerance: 1e-12, gradient_tolerance: 1e-12 }
+        Self {
+            max_iterations: 100,
+            loss: Loss::Squared,
+            function_tolerance: 1e-12,
+            parameter_tolerance: 1e-12,
+            gradient_tolerance: 1e-12,
+        }
     }
 }
 
@@ -150,13 +156,17 @@ impl BundleProblem {
     pub fn residual(&self, o: &Obs) -> Option<Vec2> {
         let x = self.point_world(&o.point);
         let cam_from_world = (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam]).inverse();
-        self.cameras[o.cam].project(&cam_from_world.apply(&x)).map(|uv| uv - o.uv)
+        self.cameras[o.cam]
+            .project(&cam_from_world.apply(&x))
+            .map(|uv| uv - o.uv)
     }
 
     /// Point in camera coordinates; positive depth means in front.
     pub fn point_in_camera(&self, o: &Obs) -> Vec3 {
         let x = self.point_world(&o.point);
-        (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam]).inverse().apply(&x)
+        (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam])
+            .inverse()
+            .apply(&x)
     }
 
     /// Residual and the Jacobians w.r.t. rig pose, extrinsic and world point.
@@ -172,10 +182,14 @@ impl BundleProblem {
         let jq = jp * rxt;
         let mut j_rig = J26::zeros();
         j_rig.fixed_view_mut::<2, 3>(0, 0).copy_from(&(-jq * rkt));
-        j_rig.fixed_view_mut::<2, 3>(0, 3).copy_from(&(jq * rkt * skew(&(x - rig.trans))));
+        j_rig
+            .fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(jq * rkt * skew(&(x - rig.trans))));
         let mut j_cam = J26::zeros();
         j_cam.fixed_view_mut::<2, 3>(0, 0).copy_from(&(-jq));
-        j_cam.fixed_view_mut::<2, 3>(0, 3).copy_from(&(jp * rxt * skew(&(q - ext.trans))));
+        j_cam
+            .fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(jp * rxt * skew(&(q - ext.trans))));
         Some((uv - o.uv, j_rig, j_cam, jq * rkt))
     }
 
@@ -198,7 +212,8 @@ impl BundleProblem {
     }
 
     fn distance_residual(&self, d: &DistanceConstraint) -> f64 {
-        ((self.point_world(&d.a) - self.point_world(&d.b)).norm() - d.distance) * (self.pixel_sigma / d.sigma)
+        ((self.point_world(&d.a) - self.point_world(&d.b)).norm() - d.distance)
+            * (self.pixel_sigma / d.sigma)
     }
 
     fn prior_residual(&self, p: &DirectionPrior) -> f64 {
@@ -259,9 +274,19 @@ impl BundleProblem {
                 }
             })
             .collect();
-        let mut layout = Layout { rig, cam, point, body, n_reduced: n, couplings: vec![Vec::new(); elim_size.len()], elim_size, obs_coupling: Vec::new() };
+        let mut layout = Layout {
+            rig,
+            cam,
+            point,
+            body,
+            n_reduced: n,
+            couplings: vec![Vec::new(); elim_size.len()],
+            elim_size,
+            obs_coupling: Vec::new(),
+        };
         // Coupling structure: which reduced blocks each eliminated block meets.
-        let mut index: Vec<std::collections::HashMap<usize, usize>> = vec![Default::default(); layout.elim_size.len()];
+        let mut index: Vec<std::collections::HashMap<usize, usize>> =
+            vec![Default::default(); layout.elim_size.len()];
         for o in &self.observations {
             let e = match o.point {
                 PointRef::Free(i) => layout.point[i],
@@ -269,7 +294,10 @@ impl BundleProblem {
             };
             let mut pair = [None, None];
             if let Slot::Elim(e) = e {
-                for (k, slot) in [layout.rig[o.rig], layout.cam[o.cam]].into_iter().enumerate() {
+                for (k, slot) in [layout.rig[o.rig], layout.cam[o.cam]]
+                    .into_iter()
+                    .enumerate()
+                {
                     if let Slot::Reduced(off) = slot {
                         let list = &mut layout.couplings[e];
                         let idx = *index[e].entry(off).or_insert_with(|| {
@@ -311,7 +339,11 @@ impl BundleProblem {
             gr: DVector::zeros(nr),
             hee: vec![Matrix6::zeros(); ne],
             ge: vec![Vector6::zeros(); ne],
-            her: layout.couplings.iter().map(|c| vec![Matrix6::zeros(); c.len()]).collect(),
+            her: layout
+                .couplings
+                .iter()
+                .map(|c| vec![Matrix6::zeros(); c.len()])
+                .collect(),
             cost: 0.0,
         };
         let zero = (Slot::Fixed, 0, J26::zeros());
@@ -321,7 +353,12 @@ impl BundleProblem {
             n.cost += 0.5 * loss.rho(e2);
             let w = loss.weight(e2);
             let (pslot, psize, jpb) = self.point_block(&o.point, layout);
-            let blocks: Blocks = [(layout.rig[o.rig], 6, j_rig), (layout.cam[o.cam], 6, j_cam), (pslot, psize, j_x * jpb), zero];
+            let blocks: Blocks = [
+                (layout.rig[o.rig], 6, j_rig),
+                (layout.cam[o.cam], 6, j_cam),
+                (pslot, psize, j_x * jpb),
+                zero,
+            ];
             self.accumulate(&mut n, &blocks, &r, w, Some(layout.obs_coupling[oi]));
         }
         for d in &self.distances {
@@ -338,7 +375,13 @@ impl BundleProblem {
             j_a.fixed_view_mut::<1, 6>(0, 0).copy_from(&(u * ja));
             let mut j_b = J26::zeros();
             j_b.fixed_view_mut::<1, 6>(0, 0).copy_from(&(-u * jb));
-            self.accumulate(&mut n, &[(sa, za, j_a), (sb, zb, j_b), zero, zero], &r, 1.0, None);
+            self.accumulate(
+                &mut n,
+                &[(sa, za, j_a), (sb, zb, j_b), zero, zero],
+                &r,
+                1.0,
+                None,
+            );
         }
         for p in &self.priors {
             let r = Vec2::new(self.prior_residual(p), 0.0);
@@ -347,7 +390,8 @@ impl BundleProblem {
             let mut blocks: Blocks = [zero; 4];
             for (i, (c, v)) in p.terms.iter().take(4).enumerate() {
                 let mut j = J26::zeros();
-                j.fixed_view_mut::<1, 6>(0, 0).copy_from(&(v.transpose() * s));
+                j.fixed_view_mut::<1, 6>(0, 0)
+                    .copy_from(&(v.transpose() * s));
                 blocks[i] = (layout.cam[*c], 6, j);
             }
             // Priors spanning more than 4 cameras are applied in chunks of 4 blocks;
@@ -358,7 +402,8 @@ impl BundleProblem {
                 let mut blocks: Blocks = [zero; 4];
                 for (i, (c, v)) in chunk.iter().enumerate() {
                     let mut j = J26::zeros();
-                    j.fixed_view_mut::<1, 6>(0, 0).copy_from(&(v.transpose() * s));
+                    j.fixed_view_mut::<1, 6>(0, 0)
+                        .copy_from(&(v.transpose() * s));
                     blocks[i] = (layout.cam[*c], 6, j);
                 }
                 self.accumulate(&mut n, &blocks, &r, 1.0, None);
@@ -367,7 +412,14 @@ impl BundleProblem {
         Some(n)
     }
 
-    fn accumulate(&self, n: &mut Normal, blocks: &Blocks, r: &Vec2, w: f64, coupling: Option<[Option<usize>; 2]>) {
+    fn accumulate(
+        &self,
+        n: &mut Normal,
+        blocks: &Blocks,
+        r: &Vec2,
+        w: f64,
+        coupling: Option<[Option<usize>; 2]>,
+    ) {
         for (a, &(sa, za, ja)) in blocks.iter().enumerate() {
             if za == 0 {
                 continue;
@@ -403,7 +455,11 @@ impl BundleProblem {
                     (Slot::Reduced(_), Slot::Elim(e)) | (Slot::Elim(e), Slot::Reduced(_)) => {
                         // Eliminated blocks come last in an observation's list; the
                         // coupling index was precomputed from the rig (0) or camera (1) slot.
-                        let hr = if matches!(sa, Slot::Elim(_)) { h } else { h.transpose() };
+                        let hr = if matches!(sa, Slot::Elim(_)) {
+                            h
+                        } else {
+                            h.transpose()
+                        };
                         let which = if a == 0 { 0 } else { 1 };
                         if let Some(Some(c)) = coupling.map(|c| c[which]) {
                             n.her[e][c] += hr;
@@ -416,7 +472,12 @@ impl BundleProblem {
     }
 
     /// Solve the damped system; returns the step for reduced and eliminated blocks.
-    fn solve_step(&self, layout: &Layout, n: &Normal, lambda: f64) -> Option<(DVector<f64>, Vec<Vector6<f64>>)> {
+    fn solve_step(
+        &self,
+        layout: &Layout,
+        n: &Normal,
+        lambda: f64,
+    ) -> Option<(DVector<f64>, Vec<Vector6<f64>>)> {
         let nr = layout.n_reduced;
         let mut s = n.hrr.clone();
         for i in 0..nr {
@@ -451,7 +512,11 @@ impl BundleProblem {
             }
             einv.push(inv);
         }
-        let dr = if nr > 0 { s.cholesky()?.solve(&rhs) } else { DVector::zeros(0) };
+        let dr = if nr > 0 {
+            s.cholesky()?.solve(&rhs)
+        } else {
+            DVector::zeros(0)
+        };
         let mut de = Vec::with_capacity(n.hee.len());
         for (e, inv) in einv.iter().enumerate() {
             let mut b = -n.ge[e];
@@ -531,7 +596,10 @@ impl BundleProblem {
         let mut nu = 2.0;
         for it in 0..opts.max_iterations {
             summary.iterations = it + 1;
-            let gmax = normal.gr.amax().max(normal.ge.iter().map(|g| g.amax()).fold(0.0, f64::max));
+            let gmax = normal
+                .gr
+                .amax()
+                .max(normal.ge.iter().map(|g| g.amax()).fold(0.0, f64::max));
             if gmax < opts.gradient_tolerance {
                 summary.converged = true;
                 summary.termination = "gradient below tolerance".into();
@@ -555,13 +623,15 @@ impl BundleProblem {
             }
             for (e, d) in de.iter().enumerate() {
                 for k in 0..layout.elim_size[e] {
-                    pred += d[k] * (lambda * normal.hee[e][(k, k)].max(1e-9) * d[k] - normal.ge[e][k]);
+                    pred +=
+                        d[k] * (lambda * normal.hee[e][(k, k)].max(1e-9) * d[k] - normal.ge[e][k]);
                 }
             }
             pred *= 0.5;
             let rho = (normal.cost - new_cost) / pred.max(1e-300);
             if new_cost.is_finite() && new_cost <= normal.cost && rho > 0.0 {
-                let step_norm = (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt();
+                let step_norm =
+                    (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt();
                 let decrease = normal.cost - new_cost;
                 *self = candidate;
                 lambda *= f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3));
@@ -573,7 +643,9 @@ impl BundleProblem {
                         break;
                     }
                 }
-                if decrease <= opts.function_tolerance * normal.cost.max(1e-300) || normal.cost < 1e-24 {
+                if decrease <= opts.function_tolerance * normal.cost.max(1e-300)
+                    || normal.cost < 1e-24
+                {
                     summary.converged = true;
                     summary.termination = "cost decrease below tolerance".into();
                     break;
@@ -604,7 +676,12 @@ impl BundleProblem {
 
     fn parameter_norm(&self) -> f64 {
         let mut s = 0.0;
-        for p in self.world_from_rig.iter().chain(&self.rig_from_cam).chain(&self.world_from_body) {
+        for p in self
+            .world_from_rig
+            .iter()
+            .chain(&self.rig_from_cam)
+            .chain(&self.world_from_body)
+        {
             s += p.trans.norm_squared();
         }
         for p in &self.points {
@@ -636,9 +713,22 @@ impl BundleProblem {
                 }
             }
         }
-        let cams: Vec<usize> = (0..self.rig_from_cam.len()).filter(|&c| matches!(layout.cam[c], Slot::Reduced(_))).collect();
-        let keep: Vec<usize> = cams.iter().flat_map(|&c| if let Slot::Reduced(o) = layout.cam[c] { (o..o + 6).collect::<Vec<_>>() } else { vec![] }).collect();
-        let other: Vec<usize> = (0..layout.n_reduced).filter(|i| !keep.contains(i)).collect();
+        let cams: Vec<usize> = (0..self.rig_from_cam.len())
+            .filter(|&c| matches!(layout.cam[c], Slot::Reduced(_)))
+            .collect();
+        let keep: Vec<usize> = cams
+            .iter()
+            .flat_map(|&c| {
+                if let Slot::Reduced(o) = layout.cam[c] {
+                    (o..o + 6).collect::<Vec<_>>()
+                } else {
+                    vec![]
+                }
+            })
+            .collect();
+        let other: Vec<usize> = (0..layout.n_reduced)
+            .filter(|i| !keep.contains(i))
+            .collect();
         let skk = s.select_rows(&keep).select_columns(&keep);
         if other.is_empty() {
             return Some((cams, skk));
@@ -653,7 +743,11 @@ impl BundleProblem {
 fn invert_block(h: &Matrix6<f64>, size: usize) -> Option<Matrix6<f64>> {
     let mut out = Matrix6::zeros();
     if size == 3 {
-        let inv = h.fixed_view::<3, 3>(0, 0).into_owned().cholesky()?.inverse();
+        let inv = h
+            .fixed_view::<3, 3>(0, 0)
+            .into_owned()
+            .cholesky()?
+            .inverse();
         out.fixed_view_mut::<3, 3>(0, 0).copy_from(&inv);
     } else {
         out = h.cholesky()?.inverse();
@@ -700,26 +794,56 @@ mod tests {
 
     fn small_problem() -> BundleProblem {
         let cam = Camera::pinhole(700.0, 700.0, 320.0, 240.0, 640, 480);
-        let rig_from_cam = vec![Pose::identity(), Pose::from_rotvec(Vec3::new(0.1, 3.0, 0.05), Vec3::new(0.1, 0.0, -1.5))];
+        let rig_from_cam = vec![
+            Pose::identity(),
+            Pose::from_rotvec(Vec3::new(0.1, 3.0, 0.05), Vec3::new(0.1, 0.0, -1.5)),
+        ];
         // General 3D motion: rotation axes differ between poses (else the extrinsic is singular).
-        let axes = [Vec3::zeros(), Vec3::new(0.2, 0.0, 0.05), Vec3::new(0.0, 0.25, -0.1), Vec3::new(-0.1, 0.1, 0.3)];
-        let world_from_rig: Vec<Pose> = (0..4).map(|k| Pose::from_rotvec(axes[k], Vec3::new(0.1 * k as f64, 0.05, 0.02 * k as f64))).collect();
+        let axes = [
+            Vec3::zeros(),
+            Vec3::new(0.2, 0.0, 0.05),
+            Vec3::new(0.0, 0.25, -0.1),
+            Vec3::new(-0.1, 0.1, 0.3),
+        ];
+        let world_from_rig: Vec<Pose> = (0..4)
+            .map(|k| Pose::from_rotvec(axes[k], Vec3::new(0.1 * k as f64, 0.05, 0.02 * k as f64)))
+            .collect();
         let mut points = Vec::new();
         let mut observations = Vec::new();
         for c in 0..2 {
             for i in 0..8 {
-                let p_cam = Vec3::new(-0.4 + 0.11 * i as f64, 0.3 * ((i % 3) as f64 - 1.0), 2.0 + 0.1 * (i % 4) as f64);
+                let p_cam = Vec3::new(
+                    -0.4 + 0.11 * i as f64,
+                    0.3 * ((i % 3) as f64 - 1.0),
+                    2.0 + 0.1 * (i % 4) as f64,
+                );
                 let world = world_from_rig[0] * rig_from_cam[c];
                 points.push(world.apply(&p_cam));
                 for k in 0..4 {
-                    observations.push(Obs { rig: k, cam: c, point: PointRef::Free(points.len() - 1), uv: Vec2::zeros() });
+                    observations.push(Obs {
+                        rig: k,
+                        cam: c,
+                        point: PointRef::Free(points.len() - 1),
+                        uv: Vec2::zeros(),
+                    });
                 }
             }
         }
-        let world_from_body = vec![Pose::from_rotvec(Vec3::new(0.2, 0.1, 0.0), Vec3::new(0.0, 0.0, 2.5))];
+        let world_from_body = vec![Pose::from_rotvec(
+            Vec3::new(0.2, 0.1, 0.0),
+            Vec3::new(0.0, 0.0, 2.5),
+        )];
         for i in 0..4 {
             for k in 0..4 {
-                observations.push(Obs { rig: k, cam: 0, point: PointRef::Body { body: 0, local: Vec3::new(0.1 * i as f64, 0.05 * (i % 2) as f64, 0.0) }, uv: Vec2::zeros() });
+                observations.push(Obs {
+                    rig: k,
+                    cam: 0,
+                    point: PointRef::Body {
+                        body: 0,
+                        local: Vec3::new(0.1 * i as f64, 0.05 * (i % 2) as f64, 0.0),
+                    },
+                    uv: Vec2::zeros(),
+                });
             }
         }
         let mut p = BundleProblem {
@@ -732,7 +856,12 @@ mod tests {
             world_from_body,
             body_fixed: vec![false],
             observations,
-            distances: vec![DistanceConstraint { a: PointRef::Free(0), b: PointRef::Free(3), distance: 0.0, sigma: 1e-3 }],
+            distances: vec![DistanceConstraint {
+                a: PointRef::Free(0),
+                b: PointRef::Free(3),
+                distance: 0.0,
+                sigma: 1e-3,
+            }],
             priors: vec![],
             pixel_sigma: 1.0,
         };
@@ -754,19 +883,31 @@ mod tests {
         for k in 0..6 {
             let mut d = Vector6::zeros();
             d[k] = h;
-            let pert = |pose: &Pose, s: f64| pose.perturbed(&(Vec3::new(d[0], d[1], d[2]) * s), &(Vec3::new(d[3], d[4], d[5]) * s));
+            let pert = |pose: &Pose, s: f64| {
+                pose.perturbed(
+                    &(Vec3::new(d[0], d[1], d[2]) * s),
+                    &(Vec3::new(d[3], d[4], d[5]) * s),
+                )
+            };
             let mut pp = p.clone();
             pp.world_from_rig[o.rig] = pert(&p.world_from_rig[o.rig], 1.0);
             let mut pm = p.clone();
             pm.world_from_rig[o.rig] = pert(&p.world_from_rig[o.rig], -1.0);
             let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
-            assert!((fd - j_rig.column(k)).norm() < 1e-4 * (1.0 + fd.norm()), "rig {k}: {fd:?} vs {:?}", j_rig.column(k));
+            assert!(
+                (fd - j_rig.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "rig {k}: {fd:?} vs {:?}",
+                j_rig.column(k)
+            );
             let mut pp = p.clone();
             pp.rig_from_cam[o.cam] = pert(&p.rig_from_cam[o.cam], 1.0);
             let mut pm = p.clone();
             pm.rig_from_cam[o.cam] = pert(&p.rig_from_cam[o.cam], -1.0);
             let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
-            assert!((fd - j_cam.column(k)).norm() < 1e-4 * (1.0 + fd.norm()), "cam {k}");
+            assert!(
+                (fd - j_cam.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "cam {k}"
+            );
         }
         let PointRef::Free(i) = o.point else { panic!() };
         for k in 0..3 {
@@ -775,7 +916,10 @@ mod tests {
             let mut pm = p.clone();
             pm.points[i][k] -= h;
             let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
-            assert!((fd - j_x.column(k)).norm() < 1e-4 * (1.0 + fd.norm()), "point {k}");
+            assert!(
+                (fd - j_x.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "point {k}"
+            );
         }
         // Body Jacobian through point_block.
         let ob = *p.observations.last().unwrap();
@@ -787,11 +931,16 @@ mod tests {
             let mut d = Vector6::zeros();
             d[k] = h;
             let mut pp = p.clone();
-            pp.world_from_body[0] = p.world_from_body[0].perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]));
+            pp.world_from_body[0] = p.world_from_body[0]
+                .perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]));
             let mut pm = p.clone();
-            pm.world_from_body[0] = p.world_from_body[0].perturbed(&-Vec3::new(d[0], d[1], d[2]), &-Vec3::new(d[3], d[4], d[5]));
+            pm.world_from_body[0] = p.world_from_body[0]
+                .perturbed(&-Vec3::new(d[0], d[1], d[2]), &-Vec3::new(d[3], d[4], d[5]));
             let fd = (pp.residual(&ob).unwrap() - pm.residual(&ob).unwrap()) / (2.0 * h);
-            assert!((fd - j.column(k)).norm() < 1e-4 * (1.0 + fd.norm()), "body {k}");
+            assert!(
+                (fd - j.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "body {k}"
+            );
         }
     }
 
@@ -799,14 +948,19 @@ mod tests {
     fn recovers_truth_from_perturbed_start() {
         let truth = small_problem();
         let mut p = truth.clone();
-        p.rig_from_cam[1] = p.rig_from_cam[1].perturbed(&Vec3::new(0.02, -0.03, 0.01), &Vec3::new(0.01, -0.02, 0.015));
+        p.rig_from_cam[1] = p.rig_from_cam[1].perturbed(
+            &Vec3::new(0.02, -0.03, 0.01),
+            &Vec3::new(0.01, -0.02, 0.015),
+        );
         for k in 1..4 {
-            p.world_from_rig[k] = p.world_from_rig[k].perturbed(&Vec3::new(0.01, 0.0, -0.01), &Vec3::new(0.0, 0.01, 0.0));
+            p.world_from_rig[k] = p.world_from_rig[k]
+                .perturbed(&Vec3::new(0.01, 0.0, -0.01), &Vec3::new(0.0, 0.01, 0.0));
         }
         for x in p.points.iter_mut() {
             *x += Vec3::new(0.01, -0.01, 0.02);
         }
-        p.world_from_body[0] = p.world_from_body[0].perturbed(&Vec3::new(0.01, 0.01, 0.0), &Vec3::new(0.02, 0.0, 0.0));
+        p.world_from_body[0] =
+            p.world_from_body[0].perturbed(&Vec3::new(0.01, 0.01, 0.0), &Vec3::new(0.02, 0.0, 0.0));
         let s = p.solve(&LmOptions::default());
         assert!(s.converged, "{s:?}");
         assert!(s.final_cost < 1e-16, "{s:?}");

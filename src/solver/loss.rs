@@ -54,7 +54,11 @@ mod tests {
 
     #[test]
     fn weight_is_derivative_of_rho() {
-        for loss in [Loss::Squared, Loss::Huber { scale: 1.5 }, Loss::Cauchy { scale: 2.0 }] {
+        for loss in [
+            Loss::Squared,
+            Loss::Huber { scale: 1.5 },
+            Loss::Cauchy { scale: 2.0 },
+        ] {
             for e2 in [0.1, 1.0, 4.0, 30.0] {
                 let h = 1e-6;
                 let fd = (loss.rho(e2 + h) - loss.rho(e2 - h)) / (2.0 * h);

@@ -1,0 +1,19 @@
+//! Print the per-scene reconstruction summary of a session (a debugging aid).
+fn main() {
+    let path = std::env::args().nth(1).expect("session.json");
+    let s = rigcal::session::parse_session(&std::fs::read(path).expect("read")).expect("valid");
+    let t = rigcal::calib::trajectory::estimate(&s, &Default::default()).expect("trajectories");
+    for (i, sc) in t.scenes.iter().enumerate() {
+        println!(
+            "scene {i}: {} points, {} bodies, {} posed images, metric {}, sigma {:.3}",
+            sc.points.len(),
+            sc.bodies.len(),
+            sc.poses.len(),
+            sc.metric,
+            sc.rms
+        );
+    }
+    for (s, why) in &t.failed_scenes {
+        println!("scene {s} failed: {why}");
+    }
+}

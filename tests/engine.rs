@@ -1,0 +1,282 @@
+//! End-to-end tests of the motion method on synthetic sessions with known truth, run
+//! through the same entry points as the CLI (`parse_session` → `calibrate`).
+
+use rigcal::geometry::Pose;
+use rigcal::pipeline::{calibrate, CalibOptions};
+use rigcal::result::{ResultDocument, Status};
+use rigcal::session::parse_session;
+use rigcal::synth::{generate, Truth};
+
+fn run(preset: &str, seed: u64, noise: f64) -> (ResultDocument, Truth) {
+    let (manifest, truth) = generate(preset, seed, noise).expect("preset");
+    let session =
+        parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).expect("valid session");
+    (calibrate(&session, &CalibOptions::default()), truth)
+}
+
+fn pose(doc: &ResultDocument, cam: &str) -> Pose {
+    let m = doc
+        .extrinsics
+        .iter()
+        .find(|e| e.value.camera == cam)
+        .unwrap()
+        .value
+        .ref_from_cam;
+    Pose::new(
+        nalgebra::Matrix3::new(
+            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+        ),
+        nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
+    )
+}
+
+/// Error of the observable part: the translation error with the reported unobservable
+/// translation directions of this camera projected out.
+fn observable_error(doc: &ResultDocument, truth: &Truth, cam: &str) -> (f64, f64) {
+    let est = pose(doc, cam);
+    let t = truth.ref_from_cam[cam];
+    let (dr, _) = est.distance(&t);
+    let mut dt = est.trans - t.trans;
+    let sing = doc.singularity.as_ref().unwrap();
+    // Project out every null direction's component for this camera (Gram–Schmidt).
+    let mut basis: Vec<nalgebra::Vector3<f64>> = Vec::new();
+    for d in &sing.unobservable_directions {
+        for c in d.components.iter().filter(|c| c.camera == cam) {
+            let mut v = nalgebra::Vector3::from(c.translation);
+            for b in &basis {
+                v -= b * b.dot(&v);
+            }
+            if v.norm() > 1e-3 {
+                basis.push(v.normalize());
+            }
+        }
+    }
+    for b in &basis {
+        dt -= b * b.dot(&dt);
+    }
+    (dr, dt.norm())
+}
+
+#[test]
+fn noise_free_presets_recover_the_observable_truth() {
+    for preset in [
+        "lebraly-5.1",
+        "car-bump",
+        "car-planar-loop",
+        "car-planar",
+        "car-planar-uturn",
+    ] {
+        let (doc, truth) = run(preset, 7, 0.0);
+        assert_ne!(doc.status, Status::Failed, "{preset}: {:?}", doc.reasons);
+        for cam in truth.ref_from_cam.keys() {
+            let (dr, dt) = observable_error(&doc, &truth, cam);
+            assert!(
+                dr < 1e-6 && dt < 1e-6,
+                "{preset}/{cam}: dR {dr} rad, dt {dt} m"
+            );
+        }
+    }
+}
+
+#[test]
+fn general_motion_succeeds_with_all_dof() {
+    for preset in ["lebraly-5.1", "car-bump", "car-planar-loop"] {
+        let (doc, _) = run(preset, 3, 0.0);
+        assert_eq!(doc.status, Status::Succeeded, "{preset}: {:?}", doc.reasons);
+        let s = doc.singularity.as_ref().unwrap();
+        assert!(s.unobservable_directions.is_empty(), "{preset}");
+        for c in &s.per_camera {
+            assert_eq!(
+                (c.observable_dof.rotation, c.observable_dof.translation),
+                (3, 3),
+                "{preset}/{}",
+                c.camera
+            );
+        }
+    }
+}
+
+#[test]
+fn planar_drive_reports_height_unobservable_and_the_plane_normal() {
+    let (doc, truth) = run("car-planar", 2, 0.5);
+    assert_eq!(doc.status, Status::Degraded);
+    assert!(doc.reasons.iter().any(|r| r.code == "planar_motion"));
+    let s = doc.singularity.as_ref().unwrap();
+    assert_eq!(s.motion_class, "planar");
+    for c in s.per_camera.iter().filter(|c| c.camera != "front") {
+        assert_eq!(
+            (c.observable_dof.rotation, c.observable_dof.translation),
+            (3, 2),
+            "{}",
+            c.camera
+        );
+    }
+    // The plane normal is the vehicle's up axis seen from the front camera.
+    // Frame 0 has the vehicle at the world origin, so world_from_rig[0] is vehicle_from_front.
+    let up_in_front = truth.world_from_rig[0].rot.transpose() * nalgebra::Vector3::z();
+    let n = nalgebra::Vector3::from(s.axis);
+    let angle = n
+        .dot(&up_in_front)
+        .abs()
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees();
+    assert!(angle < 2.0, "plane normal off by {angle}°");
+    assert!(s.recommendations.iter().any(|r| r.contains("bump")));
+}
+
+#[test]
+fn uturn_leaves_one_direction_shared_by_left_and_right() {
+    for noise in [0.0, 1.0] {
+        let (doc, _) = run("car-planar-uturn", 4, noise);
+        let s = doc.singularity.as_ref().unwrap();
+        assert!(s.scene_permutation);
+        assert_eq!(
+            s.unobservable_directions.len(),
+            1,
+            "noise {noise}: {:?}",
+            s.unobservable_directions
+        );
+        let mut cams: Vec<&str> = s.unobservable_directions[0]
+            .components
+            .iter()
+            .filter(|c| nalgebra::Vector3::from(c.translation).norm() > 0.3)
+            .map(|c| c.camera.as_str())
+            .collect();
+        cams.sort();
+        assert_eq!(cams, vec!["left", "right"]);
+        let rear = s.per_camera.iter().find(|c| c.camera == "rear").unwrap();
+        assert_eq!(rear.observable_dof.translation, 3);
+    }
+}
+
+#[test]
+fn degenerate_motions_are_detected() {
+    let (doc, _) = run("pure-translation", 1, 0.5);
+    assert_eq!(doc.status, Status::Failed);
+    assert_eq!(doc.exit_code(), 1);
+    assert!(doc.reasons.iter().any(|r| r.code == "pure_translation"));
+    let (doc, _) = run("single-axis", 1, 0.5);
+    assert_eq!(
+        doc.singularity.as_ref().unwrap().motion_class,
+        "single_axis"
+    );
+    assert!(doc.reasons.iter().any(|r| r.code == "single_axis_rotation"));
+    assert_ne!(doc.status, Status::Succeeded);
+}
+
+#[test]
+fn noisy_lebraly_protocol_within_stated_bounds() {
+    // σ = 0.5 px, 10 trials: errors stay within 4σ of the reported uncertainty and the
+    // refined result beats the linear initialisation on average.
+    let mut init_err = 0.0;
+    let mut ref_err = 0.0;
+    for seed in 0..10 {
+        let (doc, truth) = run("lebraly-5.1", 100 + seed, 0.5);
+        // Known gap (issue 2 note): with noise a scene's scale points can fail to
+        // triangulate; its scale then comes through the rig, reported as scale_missing.
+        let only_known = doc
+            .reasons
+            .iter()
+            .all(|r| matches!(r.code.as_str(), "outliers_removed" | "scale_missing"));
+        assert!(
+            only_known && doc.status != Status::Failed,
+            "{:?}",
+            doc.reasons
+        );
+        let est = pose(&doc, "cam2");
+        let (_, dt) = est.distance(&truth.ref_from_cam["cam2"]);
+        let e = &doc.extrinsics[1];
+        let sig = e
+            .sigma_translation_m
+            .iter()
+            .map(|s| s.unwrap().powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!(dt < 4.0 * sig + 1e-4, "seed {seed}: dt {dt} σ {sig}");
+        let i = &doc.initialisation[1];
+        init_err +=
+            (nalgebra::Vector3::from(i.translation) - truth.ref_from_cam["cam2"].trans).norm();
+        ref_err += dt;
+    }
+    assert!(ref_err < init_err, "refined {ref_err} vs init {init_err}");
+}
+
+#[test]
+fn gross_outliers_are_listed_and_do_not_spoil_the_result() {
+    let (mut manifest, truth) = generate("car-bump", 5, 0.5).unwrap();
+    let (clean_doc, _) = run("car-bump", 5, 0.5);
+    let mut injected = 0;
+    for (fi, f) in manifest.frames.iter_mut().enumerate() {
+        for obs in f.observations.values_mut() {
+            for (k, o) in obs.iter_mut().enumerate() {
+                if (fi * 31 + k * 7) % 20 == 3 {
+                    o.u += 25.0;
+                    injected += 1;
+                }
+            }
+        }
+    }
+    let session = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    let res = doc.residuals.as_ref().unwrap();
+    assert!(
+        res.outliers as f64 >= 0.9 * injected as f64,
+        "{} of {injected} flagged",
+        res.outliers
+    );
+    for cam in ["rear", "left", "right"] {
+        let (_, dt_clean) = pose(&clean_doc, cam).distance(&truth.ref_from_cam[cam]);
+        let (_, dt) = pose(&doc, cam).distance(&truth.ref_from_cam[cam]);
+        assert!(
+            dt < 1.5 * dt_clean + 0.01,
+            "{cam}: {dt} vs clean {dt_clean}"
+        );
+    }
+}
+
+#[test]
+fn input_errors_name_the_camera_and_field() {
+    // A camera that never sees anything.
+    let (mut manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    for f in manifest.frames.iter_mut() {
+        f.observations.remove("cam2");
+    }
+    manifest.scale.retain(|s| s.a.starts_with("s-cam1"));
+    let session = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    assert_eq!(doc.status, Status::Failed);
+    assert!(doc
+        .reasons
+        .iter()
+        .any(|r| r.code == "camera_not_observed" && r.camera.as_deref() == Some("cam2")));
+    // Fewer than 3 frames.
+    let (mut manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    manifest.frames.truncate(2);
+    manifest.scale.clear();
+    let session = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    assert!(doc.reasons.iter().any(|r| r.code == "too_few_motions"));
+    // Unknown point in scale[].
+    let (mut manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    manifest.scale[0].b = "nowhere".into();
+    let err = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap_err();
+    assert_eq!(err.field, "scale[0].b");
+}
+
+#[test]
+fn exports_state_their_convention() {
+    let (manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    let session = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    use rigcal::export::{render, Format};
+    assert!(render(&doc, &session, Format::Kalibr)
+        .unwrap()
+        .contains("T_cn_cnm1"));
+    assert!(render(&doc, &session, Format::Opencv)
+        .unwrap()
+        .starts_with("%YAML:1.0"));
+    assert!(render(&doc, &session, Format::Urdf)
+        .unwrap()
+        .contains("<joint name=\"cam1_to_cam2\""));
+}
