@@ -33,7 +33,7 @@ impl Default for RigBaOptions {
     fn default() -> Self {
         Self {
             loss: Loss::Huber { scale: 2.0 },
-            outlier_sigmas: 4.0,
+            outlier_sigmas: 5.0,
             min_outlier_px: 1.0,
             max_iterations: 100,
         }

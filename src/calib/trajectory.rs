@@ -239,18 +239,74 @@ fn reconstruct_scene(
             }
         }
     } else {
-        let (a, b, rel) = best_pair(&images, &cams).ok_or_else(|| {
-            "no two images share 8 points with enough parallax (a scene of unknown geometry needs a two-view start; give its coordinates as a points target or use tags)".to_string()
-        })?;
-        poses.insert(a, Pose::identity());
-        poses.insert(b, rel);
+        // Under noise the eight-point start of a small scene can be a wrong (twisted)
+        // solution that still puts most points in front; growing from it then fails.
+        // Try the best-scored pairs and keep the start from which the scene grows most.
+        let candidates = best_pairs(&images, &cams, 5);
+        if candidates.is_empty() {
+            return Err("no two images share 8 points with enough parallax (a scene of unknown geometry needs a two-view start; give its coordinates as a points target or use tags)".to_string());
+        }
+        let mut best: Option<(usize, BTreeMap<ImageKey, Pose>, BTreeMap<usize, Vec3>)> = None;
+        for (a, b, rel) in candidates {
+            let mut p = BTreeMap::from([(a, Pose::identity()), (b, rel)]);
+            let mut x = BTreeMap::new();
+            grow(&images, kinds, &cams, &mut p, &mut x, &bodies);
+            let coverage = p.len() + x.len();
+            if best.as_ref().is_none_or(|(c, _, _)| coverage > *c) {
+                best = Some((coverage, p, x));
+            }
+        }
+        if let Some((_, p, x)) = best {
+            poses = p;
+            points = x;
+        }
     }
 
-    // Grow: triangulate free points seen by ≥2 posed images, resect images from them.
+    // Grow, scale, refine; grow again from the refined poses (points that failed to
+    // triangulate against the rough two-view start usually succeed then).
+    let mut rms = f64::NAN;
+    for round in 0..3 {
+        let before = (poses.len(), points.len());
+        grow(&images, kinds, &cams, &mut poses, &mut points, &bodies);
+        if round > 0 && (poses.len(), points.len()) == before {
+            break;
+        }
+        if !metric {
+            metric = apply_scale(session, &mut poses, &mut points);
+        }
+        rms = refine_scene(
+            session,
+            &images,
+            &mut poses,
+            &mut points,
+            &mut bodies,
+            has_bodies,
+            opts,
+        );
+    }
+    Ok(SceneRecon {
+        points,
+        bodies,
+        poses,
+        metric,
+        rms,
+    })
+}
+
+/// Triangulate free points seen by ≥ 2 posed images and resect images from known
+/// points, until neither grows.
+fn grow(
+    images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
+    kinds: &[PointKind],
+    cams: &[crate::geometry::Camera],
+    poses: &mut BTreeMap<ImageKey, Pose>,
+    points: &mut BTreeMap<usize, Vec3>,
+    bodies: &BTreeMap<usize, Pose>,
+) {
     loop {
         let before = (poses.len(), points.len());
         let mut rays: BTreeMap<usize, Vec<(Pose, Vec2)>> = BTreeMap::new();
-        for (key, obs) in &images {
+        for (key, obs) in images {
             if let Some(p) = poses.get(key) {
                 for (pt, uv) in obs {
                     if kinds[*pt] == PointKind::Free && !points.contains_key(pt) {
@@ -276,7 +332,7 @@ fn reconstruct_scene(
                 }
             }
         }
-        for (key, obs) in &images {
+        for (key, obs) in images {
             if poses.contains_key(key) {
                 continue;
             }
@@ -299,42 +355,31 @@ fn reconstruct_scene(
             break;
         }
     }
+}
 
-    // Metric scale from measured distances between reconstructed free points.
-    if !has_bodies {
-        let ratios: Vec<f64> = session
-            .distances
-            .iter()
-            .filter_map(|d| Some(d.distance / (points.get(&d.a)? - points.get(&d.b)?).norm()))
-            .filter(|r| r.is_finite())
-            .collect();
-        if let Some(scale) = median(ratios) {
-            metric = true;
-            for x in points.values_mut() {
-                *x *= scale;
-            }
-            for p in poses.values_mut() {
-                p.trans *= scale;
-            }
-        }
+/// Scale a scene of unknown geometry to metres from the measured distances between its
+/// reconstructed points (median ratio). Returns whether the scene is now metric.
+fn apply_scale(
+    session: &Session,
+    poses: &mut BTreeMap<ImageKey, Pose>,
+    points: &mut BTreeMap<usize, Vec3>,
+) -> bool {
+    let ratios: Vec<f64> = session
+        .distances
+        .iter()
+        .filter_map(|d| Some(d.distance / (points.get(&d.a)? - points.get(&d.b)?).norm()))
+        .filter(|r| r.is_finite())
+        .collect();
+    let Some(scale) = median(ratios) else {
+        return false;
+    };
+    for x in points.values_mut() {
+        *x *= scale;
     }
-
-    let rms = refine_scene(
-        session,
-        &images,
-        &mut poses,
-        &mut points,
-        &mut bodies,
-        has_bodies,
-        opts,
-    );
-    Ok(SceneRecon {
-        points,
-        bodies,
-        poses,
-        metric,
-        rms,
-    })
+    for p in poses.values_mut() {
+        p.trans *= scale;
+    }
+    true
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -345,16 +390,17 @@ fn median(mut v: Vec<f64>) -> Option<f64> {
     Some(v[v.len() / 2])
 }
 
-/// The image pair to start a scene of unknown geometry from: ≥ 8 shared points, the
-/// largest median parallax. Returns the two keys and `cam_b_from_cam_a`.
-fn best_pair(
+/// Image pairs to start a scene of unknown geometry from: ≥ 8 shared points, ranked by
+/// median parallax × √count. Returns up to `n` of `(key a, key b, cam_b_from_cam_a)`.
+fn best_pairs(
     images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
     cams: &[crate::geometry::Camera],
-) -> Option<(ImageKey, ImageKey, Pose)> {
+    n: usize,
+) -> Vec<(ImageKey, ImageKey, Pose)> {
     let keys: Vec<&ImageKey> = images.keys().collect();
     // Bound the work on long sequences: pair each of the first images with a spread of others.
     let step = (keys.len() / 40).max(1);
-    let mut best: Option<(f64, ImageKey, ImageKey, Pose)> = None;
+    let mut ranked: Vec<(f64, ImageKey, ImageKey, Pose)> = Vec::new();
     for i in (0..keys.len()).step_by(step).take(40) {
         for j in (i + 1..keys.len()).step_by(step) {
             let (a, b) = (&images[keys[i]], &images[keys[j]]);
@@ -391,12 +437,17 @@ fn best_pair(
                 continue;
             }
             let score = median(pars).unwrap_or(0.0) * (x1.len() as f64).sqrt();
-            if best.as_ref().is_none_or(|b| score > b.0) {
-                best = Some((score, *keys[i], *keys[j], rel));
+            if score > 0.0 {
+                ranked.push((score, *keys[i], *keys[j], rel));
             }
         }
     }
-    best.filter(|b| b.0 > 0.0).map(|(_, a, b, r)| (a, b, r))
+    ranked.sort_by(|a, b| b.0.total_cmp(&a.0));
+    ranked
+        .into_iter()
+        .take(n)
+        .map(|(_, a, b, r)| (a, b, r))
+        .collect()
 }
 
 /// Bundle adjustment of one scene; every posed image is its own "rig pose".
