@@ -7,6 +7,7 @@
 // iterator chains would hide which index is which.
 #![allow(clippy::needless_range_loop)]
 
+pub mod bench;
 pub mod calib;
 pub mod export;
 pub mod geometry;

@@ -51,6 +51,27 @@ enum Command {
     },
     /// Compare a result document with a synthetic ground truth.
     Compare { result: PathBuf, truth: PathBuf },
+    /// Measurements that print tables (accuracy vs truth and the Cramér–Rao bound).
+    Bench {
+        #[command(subcommand)]
+        what: BenchCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum BenchCommand {
+    /// RMS errors of init and refined extrinsics, CRB and NEES over noisy trials.
+    Accuracy {
+        #[arg(long, default_value = "lebraly-5.1")]
+        preset: String,
+        #[arg(long, default_value_t = 50)]
+        trials: usize,
+        /// Comma-separated pixel noise levels.
+        #[arg(long, default_value = "0.1,0.3,0.5,1.0", value_delimiter = ',')]
+        noise: Vec<f64>,
+        #[arg(long, default_value_t = 1000)]
+        seed: u64,
+    },
 }
 
 fn main() {
@@ -131,6 +152,28 @@ fn run() -> Result<i32> {
                 out.join("session.json").display(),
                 out.join("truth.json").display()
             );
+            Ok(0)
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Accuracy {
+                    preset,
+                    trials,
+                    noise,
+                    seed,
+                },
+        } => {
+            if !rigcal::synth::PRESETS.contains(&preset.as_str()) {
+                return Err(anyhow!(
+                    "--preset: one of {}, got {preset:?}",
+                    rigcal::synth::PRESETS.join(", ")
+                ));
+            }
+            if noise.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+                return Err(anyhow!("--noise: positive pixel σ values, got {noise:?}"));
+            }
+            let rows = rigcal::bench::accuracy::accuracy(&preset, &noise, trials, seed);
+            rigcal::bench::accuracy::print_table(&preset, &rows);
             Ok(0)
         }
         Command::Compare { result, truth } => {

@@ -174,6 +174,12 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         let slot = obs
             .as_ref()
             .and_then(|o| o.cams.iter().position(|x| *x == c));
+        let covariance = match (&obs, slot) {
+            (Some(o), Some(i)) => Some(std::array::from_fn(|a| {
+                std::array::from_fn(|b| o.cov[i].1[(a, b)])
+            })),
+            _ => None,
+        };
         let (sig_t, sig_r, dof, eig) = match (&obs, slot) {
             (Some(o), Some(i)) => {
                 let cov = &o.cov[i].1;
@@ -220,6 +226,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
             sigma_translation_m: sig_t,
             sigma_rotation_deg: sig_r,
             observable_dof: dof,
+            covariance,
         });
     }
 

@@ -48,6 +48,11 @@ pub struct Extrinsic {
     /// 1-σ of the rotation (deg) about the reference axes; `null` where unobservable.
     pub sigma_rotation_deg: [Option<f64>; 3],
     pub observable_dof: ObservableDof,
+    /// Full 6×6 covariance of `[dt (m), dφ (rad)]` (left perturbation in the reference
+    /// frame: `t ← t + dt`, `R ← exp(dφ)·R`), unobservable directions removed; `null`
+    /// for the reference camera.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub covariance: Option<[[f64; 6]; 6]>,
 }
 
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]

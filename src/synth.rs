@@ -35,6 +35,8 @@ pub struct Truth {
     pub world_from_rig: Vec<Pose>,
     /// The motion class the preset was built to have.
     pub motion: String,
+    /// Scene points (id → world coordinates; world = the vehicle frame at frame 0).
+    pub points: BTreeMap<String, [f64; 3]>,
 }
 
 struct Scenario {
@@ -433,6 +435,12 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
             .map(|w| *w * sc.cameras[0].2)
             .collect(),
         motion: sc.motion.to_string(),
+        points: sc
+            .scenes
+            .iter()
+            .flatten()
+            .map(|(id, x)| (id.clone(), [x.x, x.y, x.z]))
+            .collect(),
     };
     (manifest, truth)
 }

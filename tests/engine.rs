@@ -280,3 +280,17 @@ fn exports_state_their_convention() {
         .unwrap()
         .contains("<joint name=\"cam1_to_cam2\""));
 }
+
+#[test]
+fn uncertainty_is_honest_and_the_estimate_reaches_the_cramer_rao_bound() {
+    // 200 noisy trials of the paper's protocol at σ = 0.5 px.
+    let rows = rigcal::bench::accuracy::accuracy("lebraly-5.1", &[0.5], 200, 5000);
+    let r = &rows[0];
+    assert_eq!(r.failed, 0);
+    assert!(r.nees > 0.8 * 6.0 && r.nees < 1.25 * 6.0, "NEES {}", r.nees);
+    assert!(
+        r.refined_t_mm < 1.2 * r.crb_t_mm && r.refined_r_deg < 1.2 * r.crb_r_deg,
+        "{r:?}"
+    );
+    assert!(r.init_t_mm < 5.0 * r.refined_t_mm, "{r:?}");
+}

@@ -112,23 +112,53 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
     if n_scenes == 0 {
         return Err(TrajectoryError::NothingObserved);
     }
-    let mut scenes = Vec::new();
+    // Reconstruct the scene the reference camera sees most first: its trajectory then
+    // arbitrates between ambiguous two-view starts of the other scenes (rigidity: a
+    // camera's relative motions have the same rotation angles as the reference's).
+    let mut order: Vec<usize> = (0..n_scenes).collect();
+    let ref_count = |s: usize| -> usize {
+        session
+            .frames
+            .iter()
+            .filter(|f| {
+                f.observations[session.reference]
+                    .iter()
+                    .any(|o| scene_of_point[o.point] == Some(s))
+            })
+            .count()
+    };
+    order.sort_by_key(|&s| std::cmp::Reverse(ref_count(s)));
+    let mut scenes: Vec<Option<SceneRecon>> = vec![None; n_scenes];
     let mut failed_scenes = Vec::new();
-    for s in 0..n_scenes {
-        match reconstruct_scene(session, &scene_of_point, s, opts) {
-            Ok(r) => scenes.push(r),
-            Err(e) => {
-                failed_scenes.push((s, e));
-                scenes.push(SceneRecon {
-                    points: BTreeMap::new(),
-                    bodies: BTreeMap::new(),
-                    poses: BTreeMap::new(),
-                    metric: false,
-                    rms: f64::NAN,
-                });
+    let mut reference_poses: BTreeMap<usize, Pose> = BTreeMap::new();
+    for s in order {
+        match reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses) {
+            Ok(r) => {
+                if reference_poses.is_empty() {
+                    reference_poses = r
+                        .poses
+                        .iter()
+                        .filter(|(k, _)| k.1 == session.reference)
+                        .map(|(k, p)| (k.0, *p))
+                        .collect();
+                }
+                scenes[s] = Some(r);
             }
+            Err(e) => failed_scenes.push((s, e)),
         }
     }
+    let scenes = scenes
+        .into_iter()
+        .map(|s| {
+            s.unwrap_or(SceneRecon {
+                points: BTreeMap::new(),
+                bodies: BTreeMap::new(),
+                poses: BTreeMap::new(),
+                metric: false,
+                rms: f64::NAN,
+            })
+        })
+        .collect();
     Ok(Trajectories {
         scene_of_point,
         scenes,
@@ -162,6 +192,7 @@ fn reconstruct_scene(
     scene_of_point: &[Option<usize>],
     s: usize,
     opts: &LmOptions,
+    reference_poses: &BTreeMap<usize, Pose>,
 ) -> Result<SceneRecon, String> {
     let images = scene_images(session, scene_of_point, s);
     let kinds = &session.points.kinds;
@@ -246,17 +277,42 @@ fn reconstruct_scene(
         if candidates.is_empty() {
             return Err("no two images share 8 points with enough parallax (a scene of unknown geometry needs a two-view start; give its coordinates as a points target or use tags)".to_string());
         }
-        let mut best: Option<(usize, BTreeMap<ImageKey, Pose>, BTreeMap<usize, Vec3>)> = None;
+        // A wrong (flipped) start can grow fully and fit about as well. Rank by coverage,
+        // then by disagreement with the reference camera's rotation angles, then by σ.
+        let mut tried = Vec::new();
         for (a, b, rel) in candidates {
             let mut p = BTreeMap::from([(a, Pose::identity()), (b, rel)]);
             let mut x = BTreeMap::new();
             grow(&images, kinds, &cams, &mut p, &mut x, &bodies);
-            let coverage = p.len() + x.len();
-            if best.as_ref().is_none_or(|(c, _, _)| coverage > *c) {
-                best = Some((coverage, p, x));
-            }
+            let mut no_bodies = BTreeMap::new();
+            let sigma = refine_scene(
+                session,
+                &images,
+                &mut p,
+                &mut x,
+                &mut no_bodies,
+                false,
+                opts,
+            );
+            let mismatch = angle_mismatch(&p, reference_poses, session.reference);
+            tried.push((
+                p.len() + x.len(),
+                mismatch,
+                if sigma.is_finite() {
+                    sigma
+                } else {
+                    f64::INFINITY
+                },
+                p,
+                x,
+            ));
         }
-        if let Some((_, p, x)) = best {
+        let max_cover = tried.iter().map(|t| t.0).max().unwrap_or(0);
+        let chosen = tried
+            .into_iter()
+            .filter(|t| t.0 as f64 >= 0.9 * max_cover as f64)
+            .min_by(|a, b| a.1.total_cmp(&b.1).then(a.2.total_cmp(&b.2)));
+        if let Some((_, _, _, p, x)) = chosen {
             poses = p;
             points = x;
         }
@@ -380,6 +436,38 @@ fn apply_scale(
         p.trans *= scale;
     }
     true
+}
+
+/// Median |angle(B) − angle(A)| (rad) between the relative motions of the images of a
+/// candidate reconstruction (B, per camera) and of the reference camera over the same
+/// frames (A). Zero for a correct reconstruction without noise; 0 if not comparable.
+fn angle_mismatch(
+    poses: &BTreeMap<ImageKey, Pose>,
+    reference: &BTreeMap<usize, Pose>,
+    reference_cam: usize,
+) -> f64 {
+    let mut by_cam: BTreeMap<usize, Vec<(usize, Pose)>> = BTreeMap::new();
+    for (k, p) in poses {
+        if reference.contains_key(&k.0) && k.1 != reference_cam {
+            by_cam.entry(k.1).or_default().push((k.0, *p));
+        }
+    }
+    let mut d = Vec::new();
+    for list in by_cam.values() {
+        for i in 0..list.len() {
+            for j in i + 1..list.len() {
+                let (fa, pa) = list[i];
+                let (fb, pb) = list[j];
+                let b = crate::geometry::so3::log(&(pb.rot * pa.rot.transpose())).norm();
+                let a = crate::geometry::so3::log(
+                    &(reference[&fb].rot * reference[&fa].rot.transpose()),
+                )
+                .norm();
+                d.push((a - b).abs());
+            }
+        }
+    }
+    median(d).unwrap_or(0.0)
 }
 
 fn median(mut v: Vec<f64>) -> Option<f64> {
@@ -530,8 +618,17 @@ fn refine_scene(
         .observations
         .retain(|_| *it.next().unwrap_or(&false));
     let _ = problem.solve(opts);
+    let mut usable = vec![0usize; keys.len()];
+    for o in &problem.observations {
+        usable[o.rig] += 1;
+    }
     for (r, key) in keys.iter().enumerate() {
-        poses.insert(*key, problem.world_from_rig[r].inverse());
+        if usable[r] >= 4 {
+            poses.insert(*key, problem.world_from_rig[r].inverse());
+        } else {
+            // Every point behind it or unseen: the pose is not supported by the data.
+            poses.remove(key);
+        }
     }
     for (i, p) in pt_ids.iter().enumerate() {
         points.insert(*p, problem.points[i]);

@@ -729,14 +729,28 @@ impl BundleProblem {
         let other: Vec<usize> = (0..layout.n_reduced)
             .filter(|i| !keep.contains(i))
             .collect();
-        let skk = s.select_rows(&keep).select_columns(&keep);
         if other.is_empty() {
-            return Some((cams, skk));
+            return Some((cams, s.select_rows(&keep).select_columns(&keep)));
         }
-        let sko = s.select_rows(&keep).select_columns(&other);
-        let soo = s.select_rows(&other).select_columns(&other);
-        let soo_inv = symmetric_pseudo_inverse(&soo, 1e-12);
-        Some((cams, &skk - &sko * soo_inv * sko.transpose()))
+        // Jacobi scaling first: rig poses, points and extrinsics differ by orders of
+        // magnitude, and unscaled the elimination loses enough precision to produce
+        // negative eigenvalues in the marginal information.
+        let d: Vec<f64> = (0..s.nrows())
+            .map(|i| 1.0 / s[(i, i)].abs().max(1e-300).sqrt())
+            .collect();
+        let scaled = DMatrix::from_fn(s.nrows(), s.ncols(), |i, j| s[(i, j)] * d[i] * d[j]);
+        let skk = scaled.select_rows(&keep).select_columns(&keep);
+        let sko = scaled.select_rows(&keep).select_columns(&other);
+        let soo = scaled.select_rows(&other).select_columns(&other);
+        let reduced = match soo.clone().cholesky() {
+            Some(ch) => &skk - &sko * ch.solve(&sko.transpose()),
+            None => &skk - &sko * symmetric_pseudo_inverse(&soo, 1e-14) * sko.transpose(),
+        };
+        let dk: Vec<f64> = keep.iter().map(|&i| d[i]).collect();
+        let info = DMatrix::from_fn(keep.len(), keep.len(), |i, j| {
+            reduced[(i, j)] / (dk[i] * dk[j])
+        });
+        Some((cams, (&info + info.transpose()) * 0.5))
     }
 }
 

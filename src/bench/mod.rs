@@ -1,0 +1,6 @@
+//! Measurement harnesses behind `rigcal bench`: accuracy against ground truth (with the
+//! Cramér–Rao bound of the same problem), and solver speed. They print tables; the
+//! numbers are recorded in `docs/accuracy.md` and `docs/performance.md`.
+
+pub mod accuracy;
+pub mod speed;

@@ -1,0 +1,1 @@
+//! Solver speed (see docs/performance.md).
