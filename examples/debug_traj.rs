@@ -6,7 +6,11 @@ fn main() {
         rigcal::session::parse_session(&std::fs::read(dir.join("session.json")).unwrap()).unwrap();
     let truth: rigcal::synth::Truth =
         serde_json::from_slice(&std::fs::read(dir.join("truth.json")).unwrap()).unwrap();
-    let t = rigcal::calib::trajectory::estimate(&s, &Default::default()).unwrap();
+    let lm = rigcal::solver::bundle::LmOptions {
+        loss: rigcal::solver::Loss::Huber { scale: 2.0 },
+        ..Default::default()
+    };
+    let t = rigcal::calib::trajectory::estimate(&s, &lm).unwrap();
     for (si, sc) in t.scenes.iter().enumerate() {
         let keys: Vec<_> = sc.poses.keys().copied().collect();
         let k0 = keys[0];

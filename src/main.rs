@@ -72,6 +72,16 @@ enum BenchCommand {
         #[arg(long, default_value_t = 1000)]
         seed: u64,
     },
+    /// Wall time, iterations and final cost of the rig bundle adjustment.
+    Speed {
+        #[arg(long, default_value_t = 6)]
+        cameras: usize,
+        /// Comma-separated numbers of rig poses.
+        #[arg(long, default_value = "50,200", value_delimiter = ',')]
+        poses: Vec<usize>,
+        #[arg(long, default_value_t = 100)]
+        points: usize,
+    },
 }
 
 fn main() {
@@ -174,6 +184,23 @@ fn run() -> Result<i32> {
             }
             let rows = rigcal::bench::accuracy::accuracy(&preset, &noise, trials, seed);
             rigcal::bench::accuracy::print_table(&preset, &rows);
+            Ok(0)
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Speed {
+                    cameras,
+                    poses,
+                    points,
+                },
+        } => {
+            if cameras < 2 || points < 10 || poses.iter().any(|k| *k < 3) {
+                return Err(anyhow!(
+                    "--cameras ≥ 2, --points ≥ 10 and every --poses ≥ 3"
+                ));
+            }
+            let rows = rigcal::bench::speed::run(cameras, &poses, points);
+            rigcal::bench::speed::print_table(cameras, points, &rows);
             Ok(0)
         }
         Command::Compare { result, truth } => {

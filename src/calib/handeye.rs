@@ -134,7 +134,9 @@ fn rotation(pairs: &[(Pose, Pose)], class: MotionClass, stats: &mut (usize, usiz
                     let wa = so3::log(&a.rot);
                     let wb = so3::log(&b.rot);
                     if wa.norm() > MIN_ROTATION {
-                        vector_rows(&wb.normalize(), &wa.normalize(), &mut rows);
+                        // The axis of a rotation is known to ∝ 1/sin θ: weight by sin θ.
+                        let w = wa.norm().sin();
+                        vector_rows(&(wb.normalize() * w), &(wa.normalize() * w), &mut rows);
                     }
                     if k == i1 {
                         continue;

@@ -40,7 +40,7 @@ pub struct MotionReport {
     pub informative_motions: usize,
     /// Largest rotation angle of the rig between two frames (deg).
     pub max_rotation_deg: f64,
-    /// Largest rotation component off the principal axis (deg): 0 for planar motion.
+    /// Largest tilt of the common rotation axis by any motion (deg): 0 for planar motion.
     pub max_out_of_axis_deg: f64,
     /// Principal rotation axis (the motion-plane normal when planar), reference frame.
     pub axis: [f64; 3],
@@ -54,17 +54,22 @@ pub fn classify(motions: &[Pose]) -> MotionReport {
     let informative = ws.iter().filter(|w| w.norm() > MIN_ROTATION).count();
     let max_rot = ws.iter().map(|w| w.norm()).fold(0.0, f64::max);
     let max_t = motions.iter().map(|m| m.trans.norm()).fold(0.0, f64::max);
-    let mut scatter = Mat3::zeros();
-    for w in &ws {
-        scatter += w * w.transpose();
+    // The common axis n minimises Σ|R_k n − n|²: the smallest eigenvector of
+    // Σ (R_k − I)ᵀ(R_k − I). Unlike the axis of log(R_k), which is ill-conditioned near
+    // 180° (a U-turn, a loop), this is well conditioned at every angle.
+    let mut m = Mat3::zeros();
+    for mo in motions {
+        let d = mo.rot - Mat3::identity();
+        m += d.transpose() * d;
     }
-    let eig = scatter.symmetric_eigen();
-    let imax = eig.eigenvalues.imax();
-    let n: Vec3 = eig.eigenvectors.column(imax).into();
+    let eig = m.symmetric_eigen();
+    let imin = eig.eigenvalues.imin();
+    let n: Vec3 = eig.eigenvectors.column(imin).into();
     let n = if n.z < 0.0 { -n } else { n };
-    let out_of_axis = ws
+    // Tilt of each motion: the angle by which it moves the axis, 0 for rotations about n.
+    let out_of_axis = motions
         .iter()
-        .map(|w| (w - n * w.dot(&n)).norm())
+        .map(|mo| (mo.rot * n).dot(&n).clamp(-1.0, 1.0).acos())
         .fold(0.0, f64::max);
     // Fit one rotation axis line: (I − R_k) c = t_k⊥ for all k.
     let mut a = Mat3::zeros();

@@ -231,7 +231,7 @@ pub fn refine(
         loss,
         ..LmOptions::default()
     };
-    let robust = problem.solve(&lm(opts.loss));
+    let robust = problem.solve_annealed(&lm(opts.loss));
     // Outliers by a robust estimate of σ.
     let norms: Vec<f64> = problem
         .observations

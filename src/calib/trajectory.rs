@@ -283,15 +283,16 @@ fn reconstruct_scene(
         for (a, b, rel) in candidates {
             let mut p = BTreeMap::from([(a, Pose::identity()), (b, rel)]);
             let mut x = BTreeMap::new();
-            grow(&images, kinds, &cams, &mut p, &mut x, &bodies);
             let mut no_bodies = BTreeMap::new();
-            let sigma = refine_scene(
+            let mut m = false;
+            let sigma = grow_and_refine(
                 session,
                 &images,
                 &mut p,
                 &mut x,
                 &mut no_bodies,
                 false,
+                &mut m,
                 opts,
             );
             let mismatch = angle_mismatch(&p, reference_poses, session.reference);
@@ -305,6 +306,7 @@ fn reconstruct_scene(
                 },
                 p,
                 x,
+                m,
             ));
         }
         let max_cover = tried.iter().map(|t| t.0).max().unwrap_or(0);
@@ -312,34 +314,27 @@ fn reconstruct_scene(
             .into_iter()
             .filter(|t| t.0 as f64 >= 0.9 * max_cover as f64)
             .min_by(|a, b| a.1.total_cmp(&b.1).then(a.2.total_cmp(&b.2)));
-        if let Some((_, _, _, p, x)) = chosen {
-            poses = p;
-            points = x;
+        if let Some((_, _, sigma, p, x, m)) = chosen {
+            return Ok(SceneRecon {
+                points: x,
+                bodies,
+                poses: p,
+                metric: m,
+                rms: sigma,
+            });
         }
     }
 
-    // Grow, scale, refine; grow again from the refined poses (points that failed to
-    // triangulate against the rough two-view start usually succeed then).
-    let mut rms = f64::NAN;
-    for round in 0..3 {
-        let before = (poses.len(), points.len());
-        grow(&images, kinds, &cams, &mut poses, &mut points, &bodies);
-        if round > 0 && (poses.len(), points.len()) == before {
-            break;
-        }
-        if !metric {
-            metric = apply_scale(session, &mut poses, &mut points);
-        }
-        rms = refine_scene(
-            session,
-            &images,
-            &mut poses,
-            &mut points,
-            &mut bodies,
-            has_bodies,
-            opts,
-        );
-    }
+    let rms = grow_and_refine(
+        session,
+        &images,
+        &mut poses,
+        &mut points,
+        &mut bodies,
+        has_bodies,
+        &mut metric,
+        opts,
+    );
     Ok(SceneRecon {
         points,
         bodies,
@@ -350,7 +345,7 @@ fn reconstruct_scene(
 }
 
 /// Triangulate free points seen by ≥ 2 posed images and resect images from known
-/// points, until neither grows.
+/// points, for at most `rounds` rounds or until neither grows. Returns whether it grew.
 fn grow(
     images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
     kinds: &[PointKind],
@@ -358,8 +353,10 @@ fn grow(
     poses: &mut BTreeMap<ImageKey, Pose>,
     points: &mut BTreeMap<usize, Vec3>,
     bodies: &BTreeMap<usize, Pose>,
-) {
-    loop {
+    rounds: usize,
+) -> bool {
+    let start = (poses.len(), points.len());
+    for _ in 0..rounds {
         let before = (poses.len(), points.len());
         let mut rays: BTreeMap<usize, Vec<(Pose, Vec2)>> = BTreeMap::new();
         for (key, obs) in images {
@@ -411,6 +408,44 @@ fn grow(
             break;
         }
     }
+    (poses.len(), points.len()) != start
+}
+
+/// Incremental reconstruction: grow one round at a time and adjust the scene whenever
+/// it grew by 10 % since the last adjustment, so errors do not accumulate along long
+/// chains (a 360° loop). Scales to metres as soon as measured points exist. Returns the
+/// robust σ of the final adjustment.
+#[allow(clippy::too_many_arguments)]
+fn grow_and_refine(
+    session: &Session,
+    images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
+    poses: &mut BTreeMap<ImageKey, Pose>,
+    points: &mut BTreeMap<usize, Vec3>,
+    bodies: &mut BTreeMap<usize, Pose>,
+    has_bodies: bool,
+    metric: &mut bool,
+    opts: &LmOptions,
+) -> f64 {
+    let kinds = &session.points.kinds;
+    let cams: Vec<_> = session.cameras.iter().map(|c| c.camera.clone()).collect();
+    let mut last = (0usize, 0usize);
+    for _ in 0..100 {
+        if !grow(images, kinds, &cams, poses, points, bodies, 1) {
+            break;
+        }
+        let (np, nx) = (poses.len(), points.len());
+        if np as f64 > 1.1 * last.0 as f64 || nx as f64 > 1.1 * last.1 as f64 {
+            if !*metric {
+                *metric = apply_scale(session, poses, points);
+            }
+            refine_scene(session, images, poses, points, bodies, has_bodies, opts);
+            last = (poses.len(), points.len());
+        }
+    }
+    if !*metric {
+        *metric = apply_scale(session, poses, points);
+    }
+    refine_scene(session, images, poses, points, bodies, has_bodies, opts)
 }
 
 /// Scale a scene of unknown geometry to metres from the measured distances between its
@@ -617,7 +652,7 @@ fn refine_scene(
     problem
         .observations
         .retain(|_| *it.next().unwrap_or(&false));
-    let _ = problem.solve(opts);
+    let _ = problem.solve_annealed(opts);
     let mut usable = vec![0usize; keys.len()];
     for o in &problem.observations {
         usable[o.rig] += 1;

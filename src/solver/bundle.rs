@@ -674,6 +674,42 @@ impl BundleProblem {
         summary
     }
 
+    /// Solve with the robust loss of `opts` annealed from 16× its scale down to 1×.
+    /// Far from the solution a tight robust scale treats almost every residual as an
+    /// outlier and LM stalls in a bad minimum; a wide scale first avoids that.
+    pub fn solve_annealed(&mut self, opts: &LmOptions) -> BundleSummary {
+        let mut total: Option<BundleSummary> = None;
+        for factor in [16.0, 4.0, 1.0] {
+            let loss = match opts.loss {
+                Loss::Squared => {
+                    if factor > 1.0 {
+                        continue;
+                    }
+                    Loss::Squared
+                }
+                Loss::Huber { scale } => Loss::Huber {
+                    scale: scale * factor,
+                },
+                Loss::Cauchy { scale } => Loss::Cauchy {
+                    scale: scale * factor,
+                },
+            };
+            let s = self.solve(&LmOptions { loss, ..*opts });
+            total = Some(match total {
+                None => s,
+                Some(mut t) => {
+                    t.iterations += s.iterations;
+                    t.final_cost = s.final_cost;
+                    t.converged = s.converged;
+                    t.termination = s.termination;
+                    t.seconds += s.seconds;
+                    t
+                }
+            });
+        }
+        total.unwrap_or_else(|| self.solve(opts))
+    }
+
     fn parameter_norm(&self) -> f64 {
         let mut s = 0.0;
         for p in self
