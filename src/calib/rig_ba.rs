@@ -64,7 +64,7 @@ pub struct RigBaOutput {
 
 /// 1-σ (m or rad) of the priors holding undeterminable directions at the initial value:
 /// tight, because along such a direction the data carry no information at all.
-pub const HOLD_PRIOR_SIGMA: f64 = 1e-6;
+pub const HOLD_PRIOR_SIGMA: f64 = 1e-4;
 
 /// Priors holding every direction of the extrinsics that the information at the
 /// initialisation leaves undetermined (see [`crate::calib::diagnostics`]).
