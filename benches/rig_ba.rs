@@ -14,12 +14,18 @@ fn main() {
 #[divan::bench(args = [50, 200], sample_count = 5)]
 fn rig_bundle_adjustment(bencher: divan::Bencher, poses: usize) {
     let (p, _) = problem(6, poses, 100, 7);
-    bencher.with_inputs(|| p.clone()).bench_values(|mut p| p.solve(&LmOptions { max_iterations: 50, ..LmOptions::default() }));
+    bencher.with_inputs(|| p.clone()).bench_values(|mut p| {
+        p.solve(&LmOptions {
+            max_iterations: 50,
+            ..LmOptions::default()
+        })
+    });
 }
 
 #[divan::bench(sample_count = 20)]
 fn lebraly_protocol_end_to_end(bencher: divan::Bencher) {
     let (manifest, _) = rigcal::synth::generate("lebraly-5.1", 1, 0.5).expect("preset");
-    let session = parse_session(serde_json::to_string(&manifest).expect("json").as_bytes()).expect("valid");
+    let session =
+        parse_session(serde_json::to_string(&manifest).expect("json").as_bytes()).expect("valid");
     bencher.bench(|| calibrate(&session, &CalibOptions::default()));
 }

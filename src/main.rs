@@ -72,6 +72,18 @@ enum BenchCommand {
         #[arg(long, default_value_t = 1000)]
         seed: u64,
     },
+    /// Export per-camera trajectories of noisy trials for hand-eye peers (JSON on stdout;
+    /// see benches/peers/handeye.py).
+    HandeyeExport {
+        #[arg(long, default_value = "lebraly-5.1")]
+        preset: String,
+        #[arg(long, default_value_t = 50)]
+        trials: usize,
+        #[arg(long, default_value_t = 0.5)]
+        noise: f64,
+        #[arg(long, default_value_t = 1000)]
+        seed: u64,
+    },
     /// Wall time, iterations and final cost of the rig bundle adjustment.
     Speed {
         #[arg(long, default_value_t = 6)]
@@ -201,6 +213,28 @@ fn run() -> Result<i32> {
             }
             let rows = rigcal::bench::speed::run(cameras, &poses, points);
             rigcal::bench::speed::print_table(cameras, points, &rows);
+            Ok(0)
+        }
+        Command::Bench {
+            what:
+                BenchCommand::HandeyeExport {
+                    preset,
+                    trials,
+                    noise,
+                    seed,
+                },
+        } => {
+            if !rigcal::synth::PRESETS.contains(&preset.as_str()) {
+                return Err(anyhow!(
+                    "--preset: one of {}, got {preset:?}",
+                    rigcal::synth::PRESETS.join(", ")
+                ));
+            }
+            if !(noise.is_finite() && noise >= 0.0) {
+                return Err(anyhow!("--noise: a non-negative pixel σ, got {noise}"));
+            }
+            let t = rigcal::bench::accuracy::handeye_trials(&preset, noise, trials, seed);
+            println!("{}", serde_json::to_string(&t)?);
             Ok(0)
         }
         Command::Compare { result, truth } => {

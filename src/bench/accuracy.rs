@@ -217,3 +217,77 @@ pub fn print_table(preset: &str, rows: &[AccuracyRow]) {
         );
     }
 }
+
+/// One trial's per-camera trajectories for a hand-eye peer (OpenCV `calibrateHandEye`):
+/// per frame where both the reference and `camera` are posed in their own scenes,
+/// `ref_from_scene` and `cam_from_scene` (4×4), plus the truth and rigcal's answers.
+#[derive(serde::Serialize)]
+pub struct HandEyeTrial {
+    pub camera: String,
+    pub truth_ref_from_cam: [[f64; 4]; 4],
+    pub rigcal_init: [[f64; 4]; 4],
+    pub rigcal_refined: [[f64; 4]; 4],
+    pub ref_from_scene: Vec<[[f64; 4]; 4]>,
+    pub cam_from_scene: Vec<[[f64; 4]; 4]>,
+}
+
+/// Trials of `preset` at noise `sigma` exported for hand-eye peers (non-reference cameras).
+pub fn handeye_trials(preset: &str, sigma: f64, trials: usize, seed0: u64) -> Vec<HandEyeTrial> {
+    let mut out = Vec::new();
+    for trial in 0..trials {
+        let Some((manifest, truth)) = generate(preset, seed0 + trial as u64, sigma) else {
+            continue;
+        };
+        let Ok(session) = parse_session(
+            serde_json::to_string(&manifest)
+                .unwrap_or_default()
+                .as_bytes(),
+        ) else {
+            continue;
+        };
+        let lm = crate::solver::bundle::LmOptions {
+            loss: Loss::Huber { scale: 2.0 },
+            ..Default::default()
+        };
+        let Ok(traj) = crate::calib::trajectory::estimate(&session, &lm) else {
+            continue;
+        };
+        let doc = calibrate(&session, &CalibOptions::default());
+        if doc.status == Status::Failed {
+            continue;
+        }
+        // Each camera's own scene: the one it is posed in most often.
+        let own = |c: usize| -> Option<usize> {
+            (0..traj.scenes.len())
+                .max_by_key(|s| traj.scenes[*s].poses.keys().filter(|k| k.1 == c).count())
+        };
+        let r = session.reference;
+        let Some(sr) = own(r) else { continue };
+        for (c, cam) in session.cameras.iter().enumerate() {
+            if c == r {
+                continue;
+            }
+            let Some(sc) = own(c) else { continue };
+            let mut ref_from_scene = Vec::new();
+            let mut cam_from_scene = Vec::new();
+            for f in 0..session.frames.len() {
+                if let (Some(a), Some(b)) = (
+                    traj.scenes[sr].poses.get(&(f, r)),
+                    traj.scenes[sc].poses.get(&(f, c)),
+                ) {
+                    ref_from_scene.push(a.matrix());
+                    cam_from_scene.push(b.matrix());
+                }
+            }
+            out.push(HandEyeTrial {
+                camera: cam.id.clone(),
+                truth_ref_from_cam: truth.ref_from_cam[&cam.id].matrix(),
+                rigcal_init: doc.initialisation[c].ref_from_cam,
+                rigcal_refined: doc.extrinsics[c].value.ref_from_cam,
+                ref_from_scene,
+                cam_from_scene,
+            });
+        }
+    }
+    out
+}
