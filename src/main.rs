@@ -106,6 +106,17 @@ fn main() {
     }
 }
 
+fn check_preset(preset: &str) -> Result<()> {
+    if rigcal::synth::PRESETS.contains(&preset) {
+        Ok(())
+    } else {
+        Err(anyhow!(
+            "--preset: one of {}, got {preset:?}",
+            rigcal::synth::PRESETS.join(", ")
+        ))
+    }
+}
+
 fn run() -> Result<i32> {
     match Cli::parse().command {
         Command::Calibrate {
@@ -185,12 +196,7 @@ fn run() -> Result<i32> {
                     seed,
                 },
         } => {
-            if !rigcal::synth::PRESETS.contains(&preset.as_str()) {
-                return Err(anyhow!(
-                    "--preset: one of {}, got {preset:?}",
-                    rigcal::synth::PRESETS.join(", ")
-                ));
-            }
+            check_preset(&preset)?;
             if noise.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
                 return Err(anyhow!("--noise: positive pixel σ values, got {noise:?}"));
             }
@@ -224,12 +230,7 @@ fn run() -> Result<i32> {
                     seed,
                 },
         } => {
-            if !rigcal::synth::PRESETS.contains(&preset.as_str()) {
-                return Err(anyhow!(
-                    "--preset: one of {}, got {preset:?}",
-                    rigcal::synth::PRESETS.join(", ")
-                ));
-            }
+            check_preset(&preset)?;
             if !(noise.is_finite() && noise >= 0.0) {
                 return Err(anyhow!("--noise: a non-negative pixel σ, got {noise}"));
             }

@@ -45,6 +45,13 @@ fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
     SVector::<f64, 6>::from_iterator(dt.iter().chain(dphi.iter()).copied())
 }
 
+/// A preset's session, through the same parser users' sessions go through, and its truth.
+pub fn synthetic_session(preset: &str, seed: u64, sigma: f64) -> Option<(Session, Truth)> {
+    let (manifest, truth) = generate(preset, seed, sigma)?;
+    let session = parse_session(serde_json::to_string(&manifest).ok()?.as_bytes()).ok()?;
+    Some((session, truth))
+}
+
 /// Covariance of the extrinsics at the truth for pixel noise `sigma` (the CRB): cameras
 /// in session order except the reference, 6×6 blocks `[dt, dφ]`.
 pub fn cramer_rao(
@@ -122,14 +129,8 @@ pub fn accuracy(preset: &str, sigmas: &[f64], trials: usize, seed0: u64) -> Vec<
         let mut n = 0usize;
         let mut n_nees = 0usize;
         for trial in 0..trials {
-            let Some((manifest, truth)) = generate(preset, seed0 + trial as u64, sigma) else {
-                continue;
-            };
-            let Ok(session) = parse_session(
-                serde_json::to_string(&manifest)
-                    .unwrap_or_default()
-                    .as_bytes(),
-            ) else {
+            let Some((session, truth)) = synthetic_session(preset, seed0 + trial as u64, sigma)
+            else {
                 continue;
             };
             let doc: ResultDocument = calibrate(&session, &CalibOptions::default());
@@ -235,14 +236,7 @@ pub struct HandEyeTrial {
 pub fn handeye_trials(preset: &str, sigma: f64, trials: usize, seed0: u64) -> Vec<HandEyeTrial> {
     let mut out = Vec::new();
     for trial in 0..trials {
-        let Some((manifest, truth)) = generate(preset, seed0 + trial as u64, sigma) else {
-            continue;
-        };
-        let Ok(session) = parse_session(
-            serde_json::to_string(&manifest)
-                .unwrap_or_default()
-                .as_bytes(),
-        ) else {
+        let Some((session, truth)) = synthetic_session(preset, seed0 + trial as u64, sigma) else {
             continue;
         };
         let lm = crate::solver::bundle::LmOptions {

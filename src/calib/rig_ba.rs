@@ -167,18 +167,7 @@ pub fn refine(
             }
         }
     }
-    let distances = session
-        .distances
-        .iter()
-        .filter_map(|d| {
-            Some(DistanceConstraint {
-                a: point_ref(d.a)?,
-                b: point_ref(d.b)?,
-                distance: d.distance,
-                sigma: d.sigma,
-            })
-        })
-        .collect();
+    let distances = DistanceConstraint::from_session(session, point_ref);
     let base = rig_frames
         .iter()
         .position(|f| {
@@ -204,13 +193,7 @@ pub fn refine(
         pixel_sigma: 1.0,
     };
     // Observations behind their camera at the start cannot be linearised: drop them.
-    let keep: Vec<bool> = problem
-        .observations
-        .iter()
-        .map(|o| problem.point_in_camera(o).z > 0.0)
-        .collect();
-    let mut k = keep.iter();
-    problem.observations.retain(|_| *k.next().unwrap_or(&false));
+    let keep = problem.drop_unprojectable();
     let mut k = keep.iter();
     keys.retain(|_| *k.next().unwrap_or(&false));
 

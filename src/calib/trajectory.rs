@@ -611,18 +611,7 @@ fn refine_scene(
             }
         }
     }
-    let distances = session
-        .distances
-        .iter()
-        .filter_map(|d| {
-            Some(DistanceConstraint {
-                a: point_ref(d.a)?,
-                b: point_ref(d.b)?,
-                distance: d.distance,
-                sigma: d.sigma,
-            })
-        })
-        .collect();
+    let distances = DistanceConstraint::from_session(session, point_ref);
     let mut problem = BundleProblem {
         cameras: session.cameras.iter().map(|c| c.camera.clone()).collect(),
         rig_from_cam: vec![Pose::identity(); ncam],
@@ -643,15 +632,7 @@ fn refine_scene(
         pixel_sigma: 1.0,
     };
     // Drop observations that do not project at the start (a bad pose would poison LM).
-    let keep: Vec<bool> = problem
-        .observations
-        .iter()
-        .map(|o| problem.point_in_camera(o).z > 0.0)
-        .collect();
-    let mut it = keep.iter();
-    problem
-        .observations
-        .retain(|_| *it.next().unwrap_or(&false));
+    problem.drop_unprojectable();
     let _ = problem.solve_annealed(opts);
     let mut usable = vec![0usize; keys.len()];
     for o in &problem.observations {

@@ -45,6 +45,27 @@ pub struct DistanceConstraint {
     pub sigma: f64,
 }
 
+impl DistanceConstraint {
+    /// The session's measured distances whose two points `point_ref` can place.
+    pub fn from_session(
+        session: &crate::session::Session,
+        point_ref: impl Fn(usize) -> Option<PointRef>,
+    ) -> Vec<Self> {
+        session
+            .distances
+            .iter()
+            .filter_map(|d| {
+                Some(DistanceConstraint {
+                    a: point_ref(d.a)?,
+                    b: point_ref(d.b)?,
+                    distance: d.distance,
+                    sigma: d.sigma,
+                })
+            })
+            .collect()
+    }
+}
+
 /// A Gaussian prior on one direction of the extrinsics' tangent space at `origin`:
 /// `Σ_c v_c · [t_c − t0_c ; log(R_c R0_cᵀ)] ≈ 0 ± sigma`. It holds directions the data
 /// cannot determine (the height under planar motion) at their initial value, so that
@@ -161,6 +182,19 @@ impl BundleProblem {
         self.cameras[o.cam]
             .project(&cam_from_world.apply(&x))
             .map(|uv| uv - o.uv)
+    }
+
+    /// Drop the observations whose point is not in front of its camera (they cannot be
+    /// linearised); returns which observations were kept, in their original order.
+    pub fn drop_unprojectable(&mut self) -> Vec<bool> {
+        let keep: Vec<bool> = self
+            .observations
+            .iter()
+            .map(|o| self.point_in_camera(o).z > 0.0)
+            .collect();
+        let mut it = keep.iter();
+        self.observations.retain(|_| *it.next().unwrap_or(&false));
+        keep
     }
 
     /// Point in camera coordinates; positive depth means in front.
