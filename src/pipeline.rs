@@ -13,6 +13,13 @@ use crate::session::{Method, Session};
 use crate::solver::bundle::LmOptions;
 use std::time::Instant;
 
+/// The rig is inconsistent when its residual σ exceeds this multiple of the scenes' σ
+/// plus the floor (px): at matching noise the two agree within a few percent.
+pub const INCONSISTENT_SIGMA_RATIO: f64 = 1.5;
+pub const INCONSISTENT_SIGMA_FLOOR_PX: f64 = 0.1;
+/// More rejected observations than this share means the model, not the data, is wrong.
+pub const MAX_OUTLIER_FRACTION: f64 = 0.15;
+
 #[derive(Clone, Debug, Default)]
 pub struct CalibOptions {
     pub rig_ba: RigBaOptions,
@@ -358,6 +365,39 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
             None,
         ));
     }
+    // Consistency: the rigid rig must explain the observations about as well as the
+    // independent scene reconstructions did. A much larger residual, or a large share of
+    // rejected observations, means a scene or an extrinsic is wrong (a folded
+    // reconstruction), however converged the solver is.
+    let mut scene_sigma: Vec<f64> = traj
+        .scenes
+        .iter()
+        .map(|s| s.rms)
+        .filter(|x| x.is_finite())
+        .collect();
+    scene_sigma.sort_by(f64::total_cmp);
+    if let Some(&ss) = scene_sigma.get(scene_sigma.len() / 2) {
+        if ba.sigma_px > INCONSISTENT_SIGMA_RATIO * ss + INCONSISTENT_SIGMA_FLOOR_PX {
+            reasons.push(reason(
+                "inconsistent_rig",
+                format!("the rigid rig explains the observations with σ {:.2} px against {:.2} px for the scenes alone: a scene reconstruction or an extrinsic is wrong", ba.sigma_px, ss),
+                None,
+            ));
+        }
+    }
+    let total_obs = ba.keys.len() + ba.outliers.len();
+    if total_obs > 0 && ba.outliers.len() as f64 > MAX_OUTLIER_FRACTION * total_obs as f64 {
+        reasons.push(reason(
+            "too_many_outliers",
+            format!(
+                "{} of {} observations ({:.0} %) were rejected as outliers",
+                ba.outliers.len(),
+                total_obs,
+                100.0 * ba.outliers.len() as f64 / total_obs as f64
+            ),
+            None,
+        ));
+    }
     if !ba.outliers.is_empty() {
         reasons.push(reason(
             "outliers_removed",
@@ -368,7 +408,12 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     let fatal = reasons.iter().any(|r| {
         matches!(
             r.code.as_str(),
-            "pure_translation" | "too_few_motions" | "no_convergence" | "camera_not_observed"
+            "pure_translation"
+                | "too_few_motions"
+                | "no_convergence"
+                | "camera_not_observed"
+                | "inconsistent_rig"
+                | "too_many_outliers"
         )
     });
     let degrading = reasons

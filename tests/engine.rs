@@ -294,3 +294,40 @@ fn uncertainty_is_honest_and_the_estimate_reaches_the_cramer_rao_bound() {
     );
     assert!(r.init_t_mm < 5.0 * r.refined_t_mm, "{r:?}");
 }
+
+#[test]
+fn a_noisy_loop_is_right_or_says_it_failed() {
+    // All four scenes merge into one 360° scene here; its reconstruction can fold. A
+    // folded result must be reported as failed, never returned as a success.
+    let mut answered = 0;
+    for seed in 0..10 {
+        let (doc, truth) = run("car-planar-loop", 1000 + seed, 0.5);
+        if doc.status == Status::Failed {
+            assert!(
+                doc.reasons
+                    .iter()
+                    .any(|r| r.code == "inconsistent_rig" || r.code == "no_convergence"),
+                "{:?}",
+                doc.reasons
+            );
+            continue;
+        }
+        answered += 1;
+        for e in doc.extrinsics.iter().filter(|e| e.value.camera != "front") {
+            let (_, dt) =
+                pose(&doc, &e.value.camera).distance(&truth.ref_from_cam[&e.value.camera]);
+            let sig = e
+                .sigma_translation_m
+                .iter()
+                .map(|s| s.unwrap_or(0.0).powi(2))
+                .sum::<f64>()
+                .sqrt();
+            assert!(
+                dt < 5.0 * sig + 1e-3,
+                "seed {seed} {}: {dt} m vs σ {sig}",
+                e.value.camera
+            );
+        }
+    }
+    assert!(answered >= 7, "only {answered} of 10 loops answered");
+}
