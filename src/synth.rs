@@ -326,6 +326,9 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
 
 /// Build a preset's session (observations with `noise_px` Gaussian pixel noise) and truth.
 pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManifest, Truth)> {
+    if !(noise_px.is_finite() && noise_px >= 0.0) {
+        return None;
+    }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let sc = if preset == "lebraly-5.1" {
         lebraly(&mut rng)
@@ -336,7 +339,7 @@ pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManife
 }
 
 fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifest, Truth) {
-    let px = Normal::new(0.0, noise_px.max(0.0)).expect("finite noise");
+    let px = Normal::new(0.0, noise_px).expect("noise checked finite and non-negative in generate");
     let mm = Normal::new(0.0, 5e-4).expect("finite");
     let ref_from_vehicle = sc.cameras[0].2.inverse();
     let mut frames = Vec::new();
