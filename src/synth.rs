@@ -86,6 +86,22 @@ fn scene_points(
         .collect()
 }
 
+/// One scene per camera, in front of it at vehicle pose 0, named `s-<camera>:<k>`.
+fn camera_scenes(
+    rng: &mut ChaCha8Rng,
+    cameras: &[(String, Camera, Pose)],
+    n: usize,
+    depth: (f64, f64),
+    fill: f64,
+) -> Vec<Vec<(String, Vec3)>> {
+    cameras
+        .iter()
+        .map(|(name, cam, v_from_c)| {
+            scene_points(rng, &format!("s-{name}"), cam, v_from_c, n, depth, fill)
+        })
+        .collect()
+}
+
 fn far_pairs(points: &[(String, Vec3)], count: usize) -> Vec<(usize, usize)> {
     let mut pairs: Vec<(usize, usize, f64)> = Vec::new();
     for i in 0..points.len() {
@@ -147,20 +163,7 @@ fn lebraly(rng: &mut ChaCha8Rng) -> Scenario {
         );
         world_from_vehicle.push(Pose::from_rotvec(axis * angle, t));
     }
-    let scenes = cameras
-        .iter()
-        .map(|(name, cam, v_from_c)| {
-            scene_points(
-                rng,
-                &format!("s-{name}"),
-                cam,
-                v_from_c,
-                11,
-                (0.8, 1.3),
-                0.45,
-            )
-        })
-        .collect::<Vec<_>>();
+    let scenes = camera_scenes(rng, &cameras, 11, (0.8, 1.3), 0.45);
     let scale_pairs = scenes.iter().map(|s| far_pairs(s, 2)).collect();
     Scenario {
         preset: "lebraly-5.1".into(),
@@ -299,20 +302,7 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
         }
         _ => return None,
     };
-    let scenes: Vec<Vec<(String, Vec3)>> = cameras
-        .iter()
-        .map(|(name, cam, v_from_c)| {
-            scene_points(
-                rng,
-                &format!("s-{name}"),
-                cam,
-                v_from_c,
-                40,
-                (3.0, 6.0),
-                0.5,
-            )
-        })
-        .collect();
+    let scenes = camera_scenes(rng, &cameras, 40, (3.0, 6.0), 0.5);
     let scale_pairs = scenes.iter().map(|s| far_pairs(s, 2)).collect();
     Some(Scenario {
         preset: preset.into(),
