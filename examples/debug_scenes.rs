@@ -10,7 +10,7 @@ fn main() {
             sc.bodies.len(),
             sc.poses.len(),
             sc.metric,
-            sc.rms
+            sc.sigma_px
         );
     }
     for (s, why) in &t.failed_scenes {

@@ -132,8 +132,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         name: "trajectories".into(),
         seconds: t.elapsed().as_secs_f64(),
     });
-    for (s, why) in &traj.failed_scenes {
-        let _ = s;
+    for (_, why) in &traj.failed_scenes {
         reasons.push(reason("scene_not_reconstructed", why.clone(), None));
     }
     for scene in &traj.scenes {
@@ -369,14 +368,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     // independent scene reconstructions did. A much larger residual, or a large share of
     // rejected observations, means a scene or an extrinsic is wrong (a folded
     // reconstruction), however converged the solver is.
-    let mut scene_sigma: Vec<f64> = traj
-        .scenes
-        .iter()
-        .map(|s| s.rms)
-        .filter(|x| x.is_finite())
-        .collect();
-    scene_sigma.sort_by(f64::total_cmp);
-    if let Some(&ss) = scene_sigma.get(scene_sigma.len() / 2) {
+    if let Some(ss) = traj.median_scene_sigma() {
         if ba.sigma_px > INCONSISTENT_SIGMA_RATIO * ss + INCONSISTENT_SIGMA_FLOOR_PX {
             reasons.push(reason(
                 "inconsistent_rig",

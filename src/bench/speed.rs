@@ -2,7 +2,7 @@
 //! cameras on a ring looking outwards, `poses` rig poses of general 3D motion, `points`
 //! points per camera scene, 0.5 px noise; the solve starts from a perturbed truth.
 
-use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use crate::geometry::{Camera, Pose, Vec2, Vec3};
 use crate::solver::bundle::{BundleProblem, BundleSummary, LmOptions, Obs, PointRef};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -127,7 +127,6 @@ pub fn problem(
         priors: vec![],
         pixel_sigma: 0.5,
     };
-    let _ = so3::exp(&Vec3::zeros());
     (problem, ref_from_cam)
 }
 

@@ -10,8 +10,7 @@ pub fn is_planar(pts: &[Vec3]) -> bool {
     if pts.len() < 4 {
         return true;
     }
-    let (_, basis, sv) = principal_axes(pts);
-    let _ = basis;
+    let (_, _, sv) = principal_axes(pts);
     sv[2] <= 1e-6 * sv[0].max(1e-300)
 }
 

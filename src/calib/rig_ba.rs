@@ -11,11 +11,11 @@
 use super::handeye::InitOutput;
 use super::trajectory::Trajectories;
 use crate::geometry::Vec2;
-use crate::session::{PointKind, Session};
+use crate::session::Session;
 use crate::solver::bundle::{
-    BundleProblem, BundleSummary, DirectionPrior, DistanceConstraint, LmOptions, Obs, PointRef,
+    BundleProblem, BundleSummary, DirectionPrior, DistanceConstraint, LmOptions, Obs,
 };
-use crate::solver::Loss;
+use crate::solver::{robust_sigma, Loss};
 use nalgebra::DMatrix;
 use std::collections::HashMap;
 
@@ -99,9 +99,6 @@ fn hold_priors(problem: &BundleProblem, decision_sigma_px: f64) -> Vec<Direction
         .collect()
 }
 
-/// Median residual norm of a 2D Gaussian is σ·√(2 ln 2).
-const MEDIAN_TO_SIGMA: f64 = 1.0 / 1.177_410_022_515_474_6;
-
 pub fn refine(
     session: &Session,
     traj: &Trajectories,
@@ -135,14 +132,8 @@ pub fn refine(
             bodies.push(w_from_s * *s_from_b);
         }
     }
-    let point_ref = |p: usize| -> Option<PointRef> {
-        match session.points.kinds[p] {
-            PointKind::Free => point_index.get(&p).map(|&i| PointRef::Free(i)),
-            PointKind::Body { body, local } => body_index
-                .get(&body)
-                .map(|&b| PointRef::Body { body: b, local }),
-        }
-    };
+    let point_ref =
+        |p: usize| super::point_ref(session.points.kinds[p], p, &point_index, &body_index);
     let mut observations = Vec::new();
     let mut keys = Vec::new();
     for (fi, f) in session.frames.iter().enumerate() {
@@ -199,14 +190,7 @@ pub fn refine(
 
     // Hold what the data cannot determine, judged at the noise level the per-scene
     // adjustments saw.
-    let mut scene_rms: Vec<f64> = traj
-        .scenes
-        .iter()
-        .map(|s| s.rms)
-        .filter(|x| x.is_finite())
-        .collect();
-    scene_rms.sort_by(f64::total_cmp);
-    let decision_sigma = scene_rms.get(scene_rms.len() / 2).copied().unwrap_or(1.0);
+    let decision_sigma = traj.median_scene_sigma().unwrap_or(1.0);
     problem.priors = hold_priors(&problem, decision_sigma);
 
     let lm = |loss| LmOptions {
@@ -221,9 +205,7 @@ pub fn refine(
         .iter()
         .map(|o| problem.residual(o).map_or(f64::INFINITY, |r| r.norm()))
         .collect();
-    let mut sorted: Vec<f64> = norms.iter().copied().filter(|x| x.is_finite()).collect();
-    sorted.sort_by(f64::total_cmp);
-    let sigma_robust = sorted.get(sorted.len() / 2).copied().unwrap_or(0.0) * MEDIAN_TO_SIGMA;
+    let sigma_robust = robust_sigma(&norms).unwrap_or(0.0);
     let threshold = (opts.outlier_sigmas * sigma_robust).max(opts.min_outlier_px);
     let mut outliers = Vec::new();
     let mut inlier_obs = Vec::new();

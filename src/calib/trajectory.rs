@@ -13,7 +13,8 @@
 use super::{pnp, twoview};
 use crate::geometry::{Pose, Vec2, Vec3};
 use crate::session::{PointKind, Session};
-use crate::solver::bundle::{BundleProblem, DistanceConstraint, LmOptions, Obs, PointRef};
+use crate::solver::bundle::{BundleProblem, DistanceConstraint, LmOptions, Obs};
+use crate::solver::{median, robust_sigma};
 use std::collections::{BTreeMap, HashMap};
 
 /// An image: (frame position in `session.frames`, camera index).
@@ -31,7 +32,7 @@ pub struct SceneRecon {
     pub metric: bool,
     /// Robust pixel noise σ of the scene bundle adjustment (median-based, so a few
     /// gross outliers do not inflate it).
-    pub rms: f64,
+    pub sigma_px: f64,
 }
 
 #[derive(Clone, Debug)]
@@ -41,6 +42,20 @@ pub struct Trajectories {
     pub scenes: Vec<SceneRecon>,
     /// Scenes that could not be reconstructed, with the reason.
     pub failed_scenes: Vec<(usize, String)>,
+}
+
+impl Trajectories {
+    /// Median of the reconstructed scenes' robust pixel σ: the noise level the data
+    /// show before any rig constraint is imposed.
+    pub fn median_scene_sigma(&self) -> Option<f64> {
+        median(
+            self.scenes
+                .iter()
+                .map(|s| s.sigma_px)
+                .filter(|x| x.is_finite())
+                .collect(),
+        )
+    }
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -155,7 +170,7 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 bodies: BTreeMap::new(),
                 poses: BTreeMap::new(),
                 metric: false,
-                rms: f64::NAN,
+                sigma_px: f64::NAN,
             })
         })
         .collect();
@@ -320,12 +335,12 @@ fn reconstruct_scene(
                 bodies,
                 poses: p,
                 metric: m,
-                rms: sigma,
+                sigma_px: sigma,
             });
         }
     }
 
-    let rms = grow_and_refine(
+    let sigma_px = grow_and_refine(
         session,
         &images,
         &mut poses,
@@ -340,7 +355,7 @@ fn reconstruct_scene(
         bodies,
         poses,
         metric,
-        rms,
+        sigma_px,
     })
 }
 
@@ -505,14 +520,6 @@ fn angle_mismatch(
     median(d).unwrap_or(0.0)
 }
 
-fn median(mut v: Vec<f64>) -> Option<f64> {
-    if v.is_empty() {
-        return None;
-    }
-    v.sort_by(f64::total_cmp);
-    Some(v[v.len() / 2])
-}
-
 /// Image pairs to start a scene of unknown geometry from: ≥ 8 shared points, ranked by
 /// median parallax × √count. Returns up to `n` of `(key a, key b, cam_b_from_cam_a)`.
 fn best_pairs(
@@ -590,14 +597,7 @@ fn refine_scene(
     let body_index: HashMap<usize, usize> =
         body_ids.iter().enumerate().map(|(i, b)| (*b, i)).collect();
     let ncam = session.cameras.len();
-    let point_ref = |p: usize| -> Option<PointRef> {
-        match session.points.kinds[p] {
-            PointKind::Free => pt_index.get(&p).map(|&i| PointRef::Free(i)),
-            PointKind::Body { body, local } => body_index
-                .get(&body)
-                .map(|&b| PointRef::Body { body: b, local }),
-        }
-    };
+    let point_ref = |p: usize| super::point_ref(session.points.kinds[p], p, &pt_index, &body_index);
     let mut observations = Vec::new();
     for (r, key) in keys.iter().enumerate() {
         for (p, uv) in &images[key] {
@@ -652,15 +652,11 @@ fn refine_scene(
     for (i, b) in body_ids.iter().enumerate() {
         bodies.insert(*b, problem.world_from_body[i]);
     }
-    let mut norms: Vec<f64> = problem
+    let norms: Vec<f64> = problem
         .observations
         .iter()
         .filter_map(|o| problem.residual(o))
         .map(|r| r.norm())
         .collect();
-    norms.sort_by(f64::total_cmp);
-    // Median residual norm of a 2D Gaussian is σ·√(2 ln 2).
-    norms
-        .get(norms.len() / 2)
-        .map_or(f64::NAN, |m| m / 1.177_410_022_515_474_6)
+    robust_sigma(&norms).unwrap_or(f64::NAN)
 }

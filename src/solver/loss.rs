@@ -3,6 +3,25 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Median residual norm of a 2D Gaussian with per-axis σ is σ·√(2 ln 2).
+const MEDIAN_NORM_PER_SIGMA: f64 = 1.177_410_022_515_474_6;
+
+/// Median (upper median for even counts); `None` when empty.
+pub fn median(mut v: Vec<f64>) -> Option<f64> {
+    if v.is_empty() {
+        return None;
+    }
+    v.sort_by(f64::total_cmp);
+    Some(v[v.len() / 2])
+}
+
+/// Robust pixel σ from 2D residual norms: the median norm over √(2 ln 2), so a few gross
+/// outliers do not inflate it. Non-finite norms are ignored; `None` when none is left.
+pub fn robust_sigma(norms: &[f64]) -> Option<f64> {
+    median(norms.iter().copied().filter(|x| x.is_finite()).collect())
+        .map(|m| m / MEDIAN_NORM_PER_SIGMA)
+}
+
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "lowercase")]
 pub enum Loss {

@@ -6,4 +6,4 @@ pub mod bundle;
 pub mod loss;
 
 pub use bundle::{BundleProblem, BundleSummary, LmOptions, Obs, PointRef};
-pub use loss::Loss;
+pub use loss::{median, robust_sigma, Loss};
