@@ -3,11 +3,31 @@
 
 use anyhow::{anyhow, Context, Result};
 use clap::{Parser, Subcommand};
+use rigcal::api::ServeConfig;
 use rigcal::export::{render, Format};
+use rigcal::jobs::worker::WorkerConfig;
 use rigcal::pipeline::{calibrate, CalibOptions};
 use rigcal::session::parse_session;
-use rigcal::solver::Loss;
 use std::path::PathBuf;
+use std::time::Duration;
+
+/// Logs (tracing) to stderr; `RUST_LOG` overrides the default `info` for rigcal.
+fn init_logging() {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("rigcal=info,warn"));
+    let _ = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr)
+        .try_init();
+}
+
+fn runtime() -> Result<tokio::runtime::Runtime> {
+    init_logging();
+    tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
 
 #[derive(Parser)]
 #[command(
@@ -51,10 +71,83 @@ enum Command {
     },
     /// Compare a result document with a synthetic ground truth.
     Compare { result: PathBuf, truth: PathBuf },
+    /// The service: HTTP API, dashboard and embedded workers on SQLite in --data-dir.
+    Serve(ServeArgs),
+    /// Workers only, on the same database as a `serve` (several may run).
+    Worker {
+        #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
+        data_dir: PathBuf,
+        #[arg(long, env = "RIGCAL_WORKERS", default_value_t = 1)]
+        workers: usize,
+        /// Lease of a claimed job, seconds (renewed every third of it).
+        #[arg(long, env = "RIGCAL_LEASE_SECONDS", default_value_t = 30)]
+        lease_seconds: u64,
+    },
+    /// API keys.
+    Apikey {
+        #[command(subcommand)]
+        what: ApikeyCommand,
+    },
+    /// Newcomer path: start the service, submit the bundled sample session, wait, print
+    /// the extrinsics and the dashboard URL (then keep serving unless --exit).
+    Demo {
+        #[arg(long, default_value = "rigcal-demo")]
+        data_dir: PathBuf,
+        #[arg(long, default_value = "127.0.0.1:8080")]
+        bind: String,
+        /// Stop after printing the summary instead of serving the dashboard.
+        #[arg(long)]
+        exit: bool,
+    },
     /// Measurements that print tables (accuracy vs truth and the Cramér–Rao bound).
     Bench {
         #[command(subcommand)]
         what: BenchCommand,
+    },
+}
+
+#[derive(clap::Args)]
+struct ServeArgs {
+    /// Address to listen on (port 0 picks a free port).
+    #[arg(long, env = "RIGCAL_BIND", default_value = "127.0.0.1:8080")]
+    bind: String,
+    /// SQLite database and image blobs live here.
+    #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
+    data_dir: PathBuf,
+    /// Embedded workers (0: API only, run `rigcal worker` separately).
+    #[arg(long, env = "RIGCAL_WORKERS", default_value_t = 1)]
+    workers: usize,
+    /// Serve without API keys, as tenant "local". For local use only.
+    #[arg(long, env = "RIGCAL_INSECURE_NO_AUTH")]
+    insecure_no_auth: bool,
+    /// Lease of a claimed job, seconds (renewed every third of it).
+    #[arg(long, env = "RIGCAL_LEASE_SECONDS", default_value_t = 30)]
+    lease_seconds: u64,
+    /// Attempts per job before a transient failure becomes final.
+    #[arg(long, env = "RIGCAL_MAX_ATTEMPTS", default_value_t = 3)]
+    max_attempts: i64,
+    /// Largest image upload, bytes.
+    #[arg(long, env = "RIGCAL_MAX_IMAGE_BYTES", default_value_t = 64 << 20)]
+    max_image_bytes: usize,
+    /// Largest archive upload (and its unpacked size), bytes.
+    #[arg(long, env = "RIGCAL_MAX_ARCHIVE_BYTES", default_value_t = 1 << 30)]
+    max_archive_bytes: usize,
+    /// Largest manifest or JSON body, bytes.
+    #[arg(long, env = "RIGCAL_MAX_MANIFEST_BYTES", default_value_t = 64 << 20)]
+    max_manifest_bytes: usize,
+    /// Largest image, pixels (checked from the header, before decoding).
+    #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", default_value_t = 50_000_000)]
+    max_image_pixels: u64,
+}
+
+#[derive(Subcommand)]
+enum ApikeyCommand {
+    /// Create a key for a tenant (created if new). The key is printed once.
+    Create {
+        #[arg(long)]
+        tenant: String,
+        #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
+        data_dir: PathBuf,
     },
 }
 
@@ -128,23 +221,8 @@ fn run() -> Result<i32> {
             let bytes = std::fs::read(&session)
                 .with_context(|| format!("reading {}", session.display()))?;
             let session = parse_session(&bytes).map_err(|e| anyhow!("{}: {e}", "session"))?;
-            if !(loss_scale.is_finite() && loss_scale > 0.0) {
-                return Err(anyhow!(
-                    "--loss-scale: a positive number of pixels, got {loss_scale}"
-                ));
-            }
-            let loss = match loss.as_str() {
-                "huber" => Loss::Huber { scale: loss_scale },
-                "cauchy" => Loss::Cauchy { scale: loss_scale },
-                "squared" => Loss::Squared,
-                other => {
-                    return Err(anyhow!(
-                        "--loss: one of huber, cauchy, squared, got {other:?}"
-                    ))
-                }
-            };
-            let mut opts = CalibOptions::default();
-            opts.rig_ba.loss = loss;
+            let opts = CalibOptions::from_loss(&loss, loss_scale)
+                .map_err(|e| anyhow!("--{}: {}", e.field.replace('_', "-"), e.expected))?;
             let doc = calibrate(&session, &opts);
             match render(&doc, &session, format) {
                 Some(text) => println!("{text}"),
@@ -154,6 +232,72 @@ fn run() -> Result<i32> {
                 }
             }
             Ok(doc.exit_code())
+        }
+        Command::Serve(a) => {
+            if a.workers > 64 || a.lease_seconds < 1 || a.max_attempts < 1 {
+                return Err(anyhow!(
+                    "--workers at most 64, --lease-seconds at least 1, --max-attempts at least 1"
+                ));
+            }
+            let cfg = ServeConfig {
+                bind: a.bind,
+                data_dir: a.data_dir,
+                workers: a.workers,
+                insecure_no_auth: a.insecure_no_auth,
+                lease: Duration::from_secs(a.lease_seconds),
+                max_attempts: a.max_attempts,
+                max_manifest_bytes: a.max_manifest_bytes,
+                max_image_bytes: a.max_image_bytes,
+                max_archive_bytes: a.max_archive_bytes,
+                max_image_pixels: a.max_image_pixels,
+            };
+            runtime()?.block_on(rigcal::api::serve(cfg))?;
+            Ok(0)
+        }
+        Command::Worker {
+            data_dir,
+            workers,
+            lease_seconds,
+        } => {
+            if workers == 0 || workers > 64 || lease_seconds < 1 {
+                return Err(anyhow!(
+                    "--workers from 1 to 64, --lease-seconds at least 1"
+                ));
+            }
+            runtime()?.block_on(rigcal::jobs::worker::run_standalone(
+                &data_dir,
+                WorkerConfig {
+                    workers,
+                    lease: Duration::from_secs(lease_seconds),
+                    ..WorkerConfig::default()
+                },
+            ))?;
+            Ok(0)
+        }
+        Command::Apikey {
+            what: ApikeyCommand::Create { tenant, data_dir },
+        } => {
+            let name = tenant.trim();
+            if name.is_empty() || name.len() > 128 || name == rigcal::api::auth::LOCAL_TENANT {
+                return Err(anyhow!(
+                    "--tenant: a name of 1 to 128 characters other than \"local\", got {tenant:?}"
+                ));
+            }
+            let key = runtime()?.block_on(async {
+                let store = rigcal::store::Store::open(&data_dir).await?;
+                anyhow::Ok(store.create_api_key(name).await?)
+            })?;
+            println!("{key}");
+            eprintln!("API key for tenant {name:?} created; it is shown only now (stored hashed).");
+            Ok(0)
+        }
+        Command::Demo {
+            data_dir,
+            bind,
+            exit,
+        } => {
+            runtime()?.block_on(rigcal::demo::run(&data_dir, &bind, exit))?;
+            Ok(0)
         }
         Command::Synth {
             preset,

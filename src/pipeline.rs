@@ -25,6 +25,35 @@ pub struct CalibOptions {
     pub rig_ba: RigBaOptions,
 }
 
+impl CalibOptions {
+    /// Options from their user-facing names (CLI flags, job options): the robust loss
+    /// (`huber` | `cauchy` | `squared`) and its scale in pixels. Errors name the field.
+    pub fn from_loss(loss: &str, loss_scale: f64) -> Result<Self, crate::session::InputError> {
+        use crate::session::InputError;
+        use crate::solver::Loss;
+        if !(loss_scale.is_finite() && loss_scale > 0.0 && loss_scale <= 1000.0) {
+            return Err(InputError::new(
+                "loss_scale",
+                format!("a positive number of pixels up to 1000, got {loss_scale}"),
+            ));
+        }
+        let loss = match loss {
+            "huber" => Loss::Huber { scale: loss_scale },
+            "cauchy" => Loss::Cauchy { scale: loss_scale },
+            "squared" => Loss::Squared,
+            other => {
+                return Err(InputError::new(
+                    "loss",
+                    format!("one of huber, cauchy, squared, got {other:?}"),
+                ))
+            }
+        };
+        let mut opts = Self::default();
+        opts.rig_ba.loss = loss;
+        Ok(opts)
+    }
+}
+
 pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
     let (r, pi, y) = so3::to_rpy(&p.rot);
     ExtrinsicValue {
@@ -60,12 +89,106 @@ fn failed(session: &Session, reasons: Vec<Reason>, stages: Vec<Stage>) -> Result
     }
 }
 
+/// Where the stage runner reports progress and learns that it should stop. The service
+/// records stages as job events and honours cancellation between stages; the CLI ignores both.
+pub trait Progress {
+    /// Called as `stage` starts, `fraction` of the whole job done. Returning `false`
+    /// stops the run before that stage (cancellation).
+    fn stage(&self, stage: &str, fraction: f64) -> bool;
+}
+
+/// Progress that is never looked at and never cancels.
+pub struct Silent;
+
+impl Progress for Silent {
+    fn stage(&self, _: &str, _: f64) -> bool {
+        true
+    }
+}
+
+/// The run was cancelled between stages, at the named stage.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Cancelled(pub String);
+
+/// Stage names and the fraction of a typical run done when each starts.
+pub const STAGES: [(&str, f64); 5] = [
+    ("detection", 0.0),
+    ("trajectories", 0.05),
+    ("initialisation", 0.4),
+    ("rig_bundle_adjustment", 0.5),
+    ("diagnostics", 0.9),
+];
+
+fn enter(progress: &dyn Progress, stage: &str) -> Result<(), Cancelled> {
+    let fraction = STAGES
+        .iter()
+        .find(|(s, _)| *s == stage)
+        .map_or(0.0, |(_, f)| *f);
+    if progress.stage(stage, fraction) {
+        Ok(())
+    } else {
+        Err(Cancelled(stage.to_string()))
+    }
+}
+
+/// Images of the session that have no detections yet, as field paths
+/// (`frames[3].images.front`).
+pub fn undetected_images(session: &Session) -> Vec<String> {
+    let mut out = Vec::new();
+    for (fi, f) in session.manifest.frames.iter().enumerate() {
+        for cam in f.images.keys() {
+            if f.observations.get(cam).is_none_or(|o| o.is_empty()) {
+                out.push(format!("frames[{fi}].images.{cam}"));
+            }
+        }
+    }
+    out
+}
+
 /// Run the motion method on a validated session.
 pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
+    match calibrate_with(session, opts, &Silent) {
+        Ok(doc) => doc,
+        Err(Cancelled(stage)) => failed(
+            session,
+            vec![reason(
+                "cancelled",
+                format!("cancelled before {stage}"),
+                None,
+            )],
+            vec![],
+        ),
+    }
+}
+
+/// Run the motion method, reporting each stage to `progress` (which may cancel).
+pub fn calibrate_with(
+    session: &Session,
+    opts: &CalibOptions,
+    progress: &dyn Progress,
+) -> Result<ResultDocument, Cancelled> {
     let mut stages = Vec::new();
+    enter(progress, "detection")?;
+    let undetected = undetected_images(session);
+    if !undetected.is_empty() {
+        let n = undetected.len();
+        return Ok(failed(
+            session,
+            vec![reason(
+                "detection_unavailable",
+                format!(
+                    "{n} image(s) have no detections ({}{}); this build calibrates from detections (observations) only",
+                    undetected[0],
+                    if n > 1 { ", ..." } else { "" }
+                ),
+                None,
+            )],
+            stages,
+        ));
+    }
     let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
     if session.manifest.method == Method::Vanishing {
-        return failed(
+        return Ok(failed(
             session,
             vec![reason(
                 "method_not_supported",
@@ -73,10 +196,10 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
                 None,
             )],
             stages,
-        );
+        ));
     }
     if session.cameras.len() < 2 {
-        return failed(
+        return Ok(failed(
             session,
             vec![reason(
                 "too_few_cameras",
@@ -84,7 +207,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
                 None,
             )],
             stages,
-        );
+        ));
     }
     // Input sufficiency per camera, named.
     let mut reasons = Vec::new();
@@ -109,9 +232,10 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         }
     }
     if !reasons.is_empty() {
-        return failed(session, reasons, stages);
+        return Ok(failed(session, reasons, stages));
     }
 
+    enter(progress, "trajectories")?;
     let t = Instant::now();
     let lm = LmOptions {
         loss: opts.rig_ba.loss,
@@ -121,11 +245,11 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     let traj = match trajectory::estimate(session, &lm) {
         Ok(t) => t,
         Err(e) => {
-            return failed(
+            return Ok(failed(
                 session,
                 vec![reason("detection_failed", e.to_string(), None)],
                 stages,
-            )
+            ))
         }
     };
     stages.push(Stage {
@@ -142,6 +266,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         }
     }
 
+    enter(progress, "initialisation")?;
     let t = Instant::now();
     let init = match initialise(session, &traj) {
         Ok(i) => i,
@@ -150,7 +275,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
                 InitError::CameraNotObserved(c) | InitError::ReferenceNotObserved(c) => c.clone(),
             };
             reasons.push(reason("camera_not_observed", e.to_string(), Some(&cam)));
-            return failed(session, reasons, stages);
+            return Ok(failed(session, reasons, stages));
         }
     };
     stages.push(Stage {
@@ -163,6 +288,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         .map(|(id, p)| extrinsic_value(id, p))
         .collect();
 
+    enter(progress, "rig_bundle_adjustment")?;
     let t = Instant::now();
     let ba = refine(session, &traj, &init, &opts.rig_ba);
     stages.push(Stage {
@@ -170,6 +296,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
         seconds: t.elapsed().as_secs_f64(),
     });
 
+    enter(progress, "diagnostics")?;
     let t = Instant::now();
     let obs = observability(&ba);
     let residuals = residual_report(session, &ba);
@@ -425,7 +552,7 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     });
 
     let m = &init.motion;
-    ResultDocument {
+    Ok(ResultDocument {
         rigcal_version: env!("CARGO_PKG_VERSION").into(),
         method: "motion".into(),
         status,
@@ -458,5 +585,5 @@ pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
             termination: ba.summary.termination.clone(),
         }),
         stages,
-    }
+    })
 }

@@ -11,6 +11,16 @@ pub enum Status {
     Failed,
 }
 
+impl Status {
+    pub fn as_str(&self) -> &'static str {
+        match self {
+            Status::Succeeded => "succeeded",
+            Status::Degraded => "degraded",
+            Status::Failed => "failed",
+        }
+    }
+}
+
 /// A stable reason code with a human message (and the camera concerned, if any).
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Reason {

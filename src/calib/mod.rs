@@ -1,5 +1,6 @@
 //! Calibration estimators. Each file one estimator, tested beside it.
 
+pub mod check;
 pub mod diagnostics;
 pub mod handeye;
 pub mod motion;

@@ -480,11 +480,22 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
                 ));
             }
         }
-        if !f.images.is_empty() && f.observations.is_empty() {
-            return Err(InputError::new(
-                format!("frames[{fi}].images"),
-                "observations: this build calibrates from detections; image detection is not available yet",
-            ));
+        for (cam, path) in &f.images {
+            let safe = !path.is_empty()
+                && path.len() <= 512
+                && !path.starts_with('/')
+                && !path.contains('\\')
+                && path
+                    .split('/')
+                    .all(|p| !p.is_empty() && p != "." && p != "..");
+            if !safe {
+                return Err(InputError::new(
+                    format!("frames[{fi}].images.{cam}"),
+                    format!(
+                        "a relative image path without '..' (at most 512 characters), got {path:?}"
+                    ),
+                ));
+            }
         }
         for (cam, obs) in &f.observations {
             let ci = *cam_index.get(cam.as_str()).ok_or_else(|| {

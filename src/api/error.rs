@@ -1,0 +1,178 @@
+//! Every 4xx/5xx answer is `application/problem+json` (RFC 9457) with a stable `type`
+//! per kind of error, a human `detail`, and the offending `field` when there is one.
+//!
+//! Handlers return [`ApiError`]; [`problem_fallback`] converts the few answers produced
+//! outside handlers (unknown routes, wrong methods, body limits, extractor rejections)
+//! so that no error escapes in another format.
+
+use crate::session::InputError;
+use axum::body::Body;
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+
+pub const PROBLEM_JSON: &str = "application/problem+json";
+
+#[derive(Debug, Clone, Serialize)]
+pub struct Problem {
+    #[serde(rename = "type")]
+    pub kind: String,
+    pub title: String,
+    pub status: u16,
+    pub detail: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub instance: Option<String>,
+}
+
+#[derive(Debug, Clone)]
+pub struct ApiError {
+    pub status: StatusCode,
+    /// Stable slug: the `type` is `urn:rigcal:problem:<slug>`.
+    pub slug: &'static str,
+    pub detail: String,
+    pub field: Option<String>,
+}
+
+impl ApiError {
+    pub fn new(status: StatusCode, slug: &'static str, detail: impl Into<String>) -> Self {
+        Self {
+            status,
+            slug,
+            detail: detail.into(),
+            field: None,
+        }
+    }
+
+    pub fn field(mut self, field: impl Into<String>) -> Self {
+        self.field = Some(field.into());
+        self
+    }
+
+    pub fn not_found(what: &str) -> Self {
+        Self::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!("no such {what}"),
+        )
+    }
+
+    /// A request whose content is invalid at `field`.
+    pub fn invalid(e: InputError) -> Self {
+        Self::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "invalid-field",
+            format!("{}: expected {}", e.field, e.expected),
+        )
+        .field(e.field)
+    }
+
+    pub fn internal(e: impl std::fmt::Display) -> Self {
+        tracing::error!("internal error: {e}");
+        Self::new(
+            StatusCode::INTERNAL_SERVER_ERROR,
+            "internal",
+            "an internal error occurred; nothing was changed by this request",
+        )
+    }
+}
+
+impl From<sqlx::Error> for ApiError {
+    fn from(e: sqlx::Error) -> Self {
+        Self::internal(e)
+    }
+}
+
+fn title(slug: &str) -> String {
+    let mut t = slug.replace('-', " ");
+    if let Some(c) = t.get(0..1) {
+        let up = c.to_uppercase();
+        t.replace_range(0..1, &up);
+    }
+    t
+}
+
+pub fn problem_response(
+    status: StatusCode,
+    slug: &str,
+    detail: String,
+    field: Option<String>,
+) -> Response {
+    let p = Problem {
+        kind: format!("urn:rigcal:problem:{slug}"),
+        title: title(slug),
+        status: status.as_u16(),
+        detail,
+        field,
+        instance: None,
+    };
+    let body = serde_json::to_vec(&p).unwrap_or_default();
+    let mut r = Response::new(Body::from(body));
+    *r.status_mut() = status;
+    r.headers_mut()
+        .insert(header::CONTENT_TYPE, HeaderValue::from_static(PROBLEM_JSON));
+    r
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let mut r = problem_response(self.status, self.slug, self.detail, self.field);
+        if self.status == StatusCode::UNAUTHORIZED {
+            r.headers_mut().insert(
+                header::WWW_AUTHENTICATE,
+                HeaderValue::from_static("Bearer realm=\"rigcal\""),
+            );
+        }
+        r
+    }
+}
+
+/// Slug for an error status produced outside the handlers.
+fn slug_for(status: StatusCode) -> &'static str {
+    match status {
+        StatusCode::NOT_FOUND => "not-found",
+        StatusCode::METHOD_NOT_ALLOWED => "method-not-allowed",
+        StatusCode::PAYLOAD_TOO_LARGE => "payload-too-large",
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => "unsupported-media-type",
+        StatusCode::UNPROCESSABLE_ENTITY => "invalid-field",
+        StatusCode::BAD_REQUEST => "bad-request",
+        StatusCode::UNAUTHORIZED => "unauthorized",
+        s if s.is_server_error() => "internal",
+        _ => "bad-request",
+    }
+}
+
+/// Rewrite any error answer that is not already problem+json.
+pub async fn problem_fallback(resp: Response) -> Response {
+    let status = resp.status();
+    if !(status.is_client_error() || status.is_server_error()) {
+        return resp;
+    }
+    let is_problem = resp
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(PROBLEM_JSON.as_bytes()));
+    if is_problem {
+        return resp;
+    }
+    let allow = resp.headers().get(header::ALLOW).cloned();
+    let body = axum::body::to_bytes(resp.into_body(), 64 * 1024)
+        .await
+        .unwrap_or_default();
+    let text = String::from_utf8_lossy(&body).trim().to_string();
+    let detail = match (status, text.is_empty()) {
+        (StatusCode::NOT_FOUND, true) => "no such resource".to_string(),
+        (StatusCode::METHOD_NOT_ALLOWED, true) => "method not allowed on this resource".into(),
+        (StatusCode::PAYLOAD_TOO_LARGE, _) => {
+            "the request body exceeds the configured limit for this endpoint".into()
+        }
+        (_, true) => status.canonical_reason().unwrap_or("error").to_string(),
+        (_, false) => text,
+    };
+    let mut r = problem_response(status, slug_for(status), detail, None);
+    if let Some(a) = allow {
+        r.headers_mut().insert(header::ALLOW, a);
+    }
+    r
+}

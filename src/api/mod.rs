@@ -1,0 +1,175 @@
+//! The HTTP service: axum routers over the store, the queue and the engine.
+//! `build_app` assembles the app once; `serve` binds it (and starts embedded workers).
+
+pub mod auth;
+pub mod error;
+mod jobs;
+mod ops;
+mod sessions;
+mod vehicles;
+
+use crate::jobs::queue::Queue;
+use crate::jobs::worker::{self, WorkerConfig};
+use crate::store::Store;
+use crate::telemetry::Metrics;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
+use axum::middleware::{self, Next};
+use axum::response::Response;
+use axum::routing::{get, post, put};
+use axum::Router;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+/// Everything `rigcal serve` can be told (flags and environment variables).
+#[derive(Clone, Debug)]
+pub struct ServeConfig {
+    pub bind: String,
+    pub data_dir: PathBuf,
+    pub workers: usize,
+    pub insecure_no_auth: bool,
+    pub lease: Duration,
+    pub max_attempts: i64,
+    pub max_manifest_bytes: usize,
+    pub max_image_bytes: usize,
+    pub max_archive_bytes: usize,
+    pub max_image_pixels: u64,
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        Self {
+            bind: "127.0.0.1:8080".into(),
+            data_dir: "rigcal-data".into(),
+            workers: 1,
+            insecure_no_auth: false,
+            lease: Duration::from_secs(30),
+            max_attempts: 3,
+            max_manifest_bytes: 64 << 20,
+            max_image_bytes: 64 << 20,
+            max_archive_bytes: 1 << 30,
+            max_image_pixels: 50_000_000,
+        }
+    }
+}
+
+#[derive(Clone)]
+pub struct AppState {
+    pub store: Store,
+    pub queue: Queue,
+    pub metrics: Arc<Metrics>,
+    pub config: Arc<ServeConfig>,
+}
+
+async fn record_latency(State(state): State<AppState>, req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map_or("(unmatched)".to_string(), |p| p.as_str().to_string());
+    let method = req.method().to_string();
+    let t = Instant::now();
+    let resp = next.run(req).await;
+    state.metrics.request(
+        &method,
+        &route,
+        resp.status().as_u16(),
+        t.elapsed().as_secs_f64(),
+    );
+    resp
+}
+
+pub fn build_app(state: AppState) -> Router {
+    let cfg = state.config.clone();
+    let v1 = Router::new()
+        .route(
+            "/sessions",
+            post(sessions::create).layer(DefaultBodyLimit::max(cfg.max_archive_bytes)),
+        )
+        .route("/sessions/{id}", get(sessions::show))
+        .route("/sessions/{id}/check", get(sessions::check))
+        .route(
+            "/sessions/{id}/images/{camera}/{frame}",
+            put(sessions::put_image).layer(DefaultBodyLimit::max(cfg.max_image_bytes)),
+        )
+        .route(
+            "/sessions/{id}/archive",
+            post(sessions::archive).layer(DefaultBodyLimit::max(cfg.max_archive_bytes)),
+        )
+        .route("/jobs", post(jobs::create).get(jobs::list))
+        .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
+        .route("/jobs/{id}/events", get(jobs::events))
+        .route("/jobs/{id}/result", get(jobs::result))
+        .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
+        .route(
+            "/vehicles/{vehicle_id}/calibrations",
+            get(vehicles::calibrations),
+        )
+        .layer(DefaultBodyLimit::max(cfg.max_manifest_bytes));
+    Router::new()
+        .nest("/v1", v1)
+        .route("/", get(ops::index))
+        .route("/healthz", get(ops::healthz))
+        .route("/readyz", get(ops::readyz))
+        .route("/metrics", get(ops::metrics))
+        .route("/openapi.yaml", get(ops::openapi))
+        .route("/docs", get(ops::docs))
+        .fallback(ops::not_found)
+        .layer(middleware::from_fn_with_state(
+            state.clone(),
+            record_latency,
+        ))
+        .layer(middleware::map_response(error::problem_fallback))
+        .with_state(state)
+}
+
+/// Open the store, start `config.workers` embedded workers and bind. Returns the bound
+/// address and the server future (which runs until SIGINT/SIGTERM).
+pub async fn start(
+    config: ServeConfig,
+) -> anyhow::Result<(
+    SocketAddr,
+    impl std::future::Future<Output = std::io::Result<()>>,
+)> {
+    if config.insecure_no_auth {
+        eprintln!("WARNING: --insecure-no-auth: every request acts as tenant \"local\" without an API key. Never expose this server beyond this machine.");
+    }
+    let store = Store::open(&config.data_dir).await?;
+    let metrics = Arc::new(Metrics::default());
+    worker::spawn(
+        store.clone(),
+        metrics.clone(),
+        WorkerConfig {
+            workers: config.workers,
+            lease: config.lease,
+            ..WorkerConfig::default()
+        },
+    );
+    let listener = tokio::net::TcpListener::bind(&config.bind)
+        .await
+        .map_err(|e| anyhow::anyhow!("binding {}: {e}", config.bind))?;
+    let addr: SocketAddr = listener.local_addr()?;
+    let state = AppState {
+        queue: Queue::new(store.pool.clone()),
+        store,
+        metrics,
+        config: Arc::new(config),
+    };
+    let app = build_app(state);
+    let server = async move {
+        axum::serve(listener, app)
+            .with_graceful_shutdown(crate::signals::shutdown_signal())
+            .await
+    };
+    Ok((addr, server))
+}
+
+/// `rigcal serve`: start, print `rigcal listening on http://ADDR`, serve until a signal.
+pub async fn serve(config: ServeConfig) -> anyhow::Result<()> {
+    let (addr, server) = start(config).await?;
+    println!("rigcal listening on http://{addr}");
+    use std::io::Write;
+    let _ = std::io::stdout().flush();
+    server.await?;
+    Ok(())
+}

@@ -1,0 +1,174 @@
+//! Reading uploaded images safely: the header first (format, dimensions), checked
+//! against the camera and a pixel budget *before* any decoding, then a full decode with
+//! allocation limits to prove the file is complete. A decompression bomb (a small file
+//! declaring a huge image) is refused from its header alone.
+
+use image::{ImageFormat, ImageReader, Limits};
+use std::io::Cursor;
+
+#[derive(Clone, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct ImageMeta {
+    pub format: &'static str,
+    pub width: u32,
+    pub height: u32,
+}
+
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum ImageError {
+    #[error("a PNG or JPEG image, got {0}")]
+    UnsupportedFormat(String),
+    #[error("at most {max} pixels, the header declares {width}×{height}")]
+    TooLarge { width: u32, height: u32, max: u64 },
+    #[error(
+        "an image of {expected_w}×{expected_h} pixels (the camera's size), got {width}×{height}"
+    )]
+    SizeMismatch {
+        width: u32,
+        height: u32,
+        expected_w: u32,
+        expected_h: u32,
+    },
+    #[error("a complete, decodable image: {0}")]
+    Undecodable(String),
+}
+
+/// A reader with its format fixed from the magic bytes, and the format's name.
+type Reader<'a> = (ImageReader<Cursor<&'a [u8]>>, &'static str);
+
+fn reader(bytes: &[u8]) -> Result<Reader<'_>, ImageError> {
+    let fmt = match image::guess_format(bytes) {
+        Ok(ImageFormat::Png) => ("png", ImageFormat::Png),
+        Ok(ImageFormat::Jpeg) => ("jpeg", ImageFormat::Jpeg),
+        Ok(other) => return Err(ImageError::UnsupportedFormat(format!("{other:?}"))),
+        Err(_) => {
+            return Err(ImageError::UnsupportedFormat(
+                "bytes that are not a known image format".into(),
+            ))
+        }
+    };
+    let mut r = ImageReader::new(Cursor::new(bytes));
+    r.set_format(fmt.1);
+    Ok((r, fmt.0))
+}
+
+/// Format and dimensions from the header only.
+pub fn header(bytes: &[u8]) -> Result<ImageMeta, ImageError> {
+    let (r, format) = reader(bytes)?;
+    let (width, height) = r
+        .into_dimensions()
+        .map_err(|e| ImageError::Undecodable(e.to_string()))?;
+    Ok(ImageMeta {
+        format,
+        width,
+        height,
+    })
+}
+
+/// Check an uploaded image: header within `max_pixels`, dimensions equal to
+/// `expected` when given, then a full, allocation-limited decode.
+pub fn inspect(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+    max_pixels: u64,
+) -> Result<ImageMeta, ImageError> {
+    let meta = header(bytes)?;
+    let pixels = meta.width as u64 * meta.height as u64;
+    if pixels > max_pixels || meta.width == 0 || meta.height == 0 {
+        return Err(ImageError::TooLarge {
+            width: meta.width,
+            height: meta.height,
+            max: max_pixels,
+        });
+    }
+    if let Some((w, h)) = expected {
+        if (meta.width, meta.height) != (w, h) {
+            return Err(ImageError::SizeMismatch {
+                width: meta.width,
+                height: meta.height,
+                expected_w: w,
+                expected_h: h,
+            });
+        }
+    }
+    let (mut r, _) = reader(bytes)?;
+    let mut limits = Limits::default();
+    limits.max_image_width = Some(meta.width);
+    limits.max_image_height = Some(meta.height);
+    // 16-bit RGBA at most, plus decoder scratch.
+    limits.max_alloc = Some(pixels * 8 + (64 << 20));
+    r.limits(limits);
+    r.decode()
+        .map_err(|e| ImageError::Undecodable(e.to_string()))?;
+    Ok(meta)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    pub fn png(w: u32, h: u32) -> Vec<u8> {
+        let img =
+            image::GrayImage::from_fn(w, h, |x, y| image::Luma([((x * 7 + y * 3) % 255) as u8]));
+        let mut out = Vec::new();
+        img.write_to(&mut Cursor::new(&mut out), ImageFormat::Png)
+            .unwrap();
+        out
+    }
+
+    #[test]
+    fn accepts_png_of_the_camera_size() {
+        let m = inspect(&png(64, 48), Some((64, 48)), 1 << 20).unwrap();
+        assert_eq!((m.format, m.width, m.height), ("png", 64, 48));
+    }
+
+    #[test]
+    fn refuses_wrong_size_truncation_and_other_formats() {
+        let p = png(64, 48);
+        assert!(matches!(
+            inspect(&p, Some((640, 480)), 1 << 20),
+            Err(ImageError::SizeMismatch { .. })
+        ));
+        assert!(matches!(
+            inspect(&p[..p.len() / 2], Some((64, 48)), 1 << 20),
+            Err(ImageError::Undecodable(_))
+        ));
+        assert!(matches!(
+            inspect(b"GIF89a......", None, 1 << 20),
+            Err(ImageError::UnsupportedFormat(_))
+        ));
+        assert!(matches!(
+            inspect(b"hello", None, 1 << 20),
+            Err(ImageError::UnsupportedFormat(_))
+        ));
+    }
+
+    /// CRC-32 (PNG chunks), bitwise.
+    fn crc32(data: &[u8]) -> u32 {
+        let mut c = 0xffff_ffffu32;
+        for b in data {
+            c ^= *b as u32;
+            for _ in 0..8 {
+                c = if c & 1 != 0 {
+                    0xedb8_8320 ^ (c >> 1)
+                } else {
+                    c >> 1
+                };
+            }
+        }
+        !c
+    }
+
+    #[test]
+    fn refuses_a_bomb_from_its_header() {
+        // A valid PNG header declaring 100000×100000, then nothing.
+        let mut p = png(1, 1);
+        p[16..20].copy_from_slice(&100_000u32.to_be_bytes());
+        p[20..24].copy_from_slice(&100_000u32.to_be_bytes());
+        let crc = crc32(&p[12..29]);
+        p[29..33].copy_from_slice(&crc.to_be_bytes());
+        assert!(matches!(
+            inspect(&p, None, 50_000_000),
+            Err(ImageError::TooLarge { .. })
+        ));
+    }
+}

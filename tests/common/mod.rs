@@ -1,0 +1,215 @@
+//! A real `rigcal serve` process on a random port with its own temp data directory,
+//! talked to over HTTP with reqwest (the way clients do).
+#![allow(dead_code)]
+
+use serde_json::Value;
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+pub const BIN: &str = env!("CARGO_BIN_EXE_rigcal");
+
+pub struct Server {
+    pub child: Child,
+    pub base: String,
+    pub data_dir: PathBuf,
+}
+
+/// Create an API key for `tenant` in `data_dir` with the CLI.
+pub fn api_key(data_dir: &Path, tenant: &str) -> String {
+    let out = Command::new(BIN)
+        .args(["apikey", "create", "--tenant", tenant, "--data-dir"])
+        .arg(data_dir)
+        .output()
+        .expect("run rigcal apikey");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8(out.stdout).unwrap().trim().to_string()
+}
+
+impl Server {
+    /// Start `rigcal serve --bind 127.0.0.1:0 --data-dir DIR ARGS...` and wait for its
+    /// "listening" line.
+    pub fn start(data_dir: &Path, args: &[&str]) -> Server {
+        let mut child = Command::new(BIN)
+            .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
+            .arg(data_dir)
+            .args(args)
+            .env("RUST_LOG", "warn")
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("spawn rigcal serve");
+        let stdout = child.stdout.take().unwrap();
+        let mut line = String::new();
+        BufReader::new(stdout)
+            .read_line(&mut line)
+            .expect("read listening line");
+        let base = line
+            .trim()
+            .strip_prefix("rigcal listening on ")
+            .unwrap_or_else(|| panic!("unexpected first line {line:?}"))
+            .to_string();
+        Server {
+            child,
+            base,
+            data_dir: data_dir.to_path_buf(),
+        }
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("{}{}", self.base, path)
+    }
+
+    /// SIGKILL: no chance to clean up, like a power cut of the process.
+    pub fn kill9(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+pub fn client(key: &str) -> reqwest::Client {
+    let mut h = reqwest::header::HeaderMap::new();
+    h.insert(
+        reqwest::header::AUTHORIZATION,
+        format!("Bearer {key}").parse().unwrap(),
+    );
+    reqwest::Client::builder()
+        .default_headers(h)
+        .timeout(Duration::from_secs(120))
+        .build()
+        .unwrap()
+}
+
+/// A synthetic session (detections) as JSON bytes, with a vehicle id.
+pub fn synth_session(preset: &str, seed: u64, noise: f64, vehicle: &str) -> Value {
+    let (m, _) = rigcal::synth::generate(preset, seed, noise).expect("preset");
+    let mut v = serde_json::to_value(&m).unwrap();
+    v["vehicle_id"] = Value::String(vehicle.into());
+    v
+}
+
+/// Assert a problem+json answer with the given status and type slug; returns the body.
+pub async fn expect_problem(resp: reqwest::Response, status: u16, slug: &str) -> Value {
+    let got = resp.status().as_u16();
+    let ct = resp
+        .headers()
+        .get("content-type")
+        .map(|v| v.to_str().unwrap().to_string())
+        .unwrap_or_default();
+    let body: Value = resp.json().await.unwrap_or(Value::Null);
+    assert_eq!(got, status, "status of {body}");
+    assert_eq!(ct, "application/problem+json", "content type of {body}");
+    assert_eq!(
+        body["type"],
+        format!("urn:rigcal:problem:{slug}"),
+        "type of {body}"
+    );
+    assert_eq!(body["status"], status);
+    assert!(body["detail"].as_str().is_some_and(|d| !d.is_empty()));
+    body
+}
+
+pub async fn create_session(c: &reqwest::Client, s: &Server, manifest: &Value) -> Value {
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .json(manifest)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    r.json().await.unwrap()
+}
+
+pub async fn submit(c: &reqwest::Client, s: &Server, session_id: &str) -> Value {
+    let r = c
+        .post(s.url("/v1/jobs"))
+        .json(&serde_json::json!({"session_id": session_id}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 202);
+    r.json().await.unwrap()
+}
+
+/// Poll a job until it ends (or `timeout`).
+pub async fn wait_job(c: &reqwest::Client, s: &Server, id: &str, timeout: Duration) -> Value {
+    let t = Instant::now();
+    loop {
+        let j: Value = c
+            .get(s.url(&format!("/v1/jobs/{id}")))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        let st = j["status"].as_str().unwrap_or("");
+        if ["succeeded", "degraded", "failed", "cancelled"].contains(&st) {
+            return j;
+        }
+        assert!(
+            t.elapsed() < timeout,
+            "job {id} still {st} after {timeout:?}"
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+/// A PNG of `w`×`h` (grey, 8-bit) whose content depends on `seed`.
+pub fn png(w: u32, h: u32, seed: u8) -> Vec<u8> {
+    let img = image::GrayImage::from_fn(w, h, |x, y| {
+        image::Luma([((x * 7 + y * 3) as u8).wrapping_add(seed)])
+    });
+    let mut out = Vec::new();
+    img.write_to(&mut std::io::Cursor::new(&mut out), image::ImageFormat::Png)
+        .unwrap();
+    out
+}
+
+/// An image session: small pinhole cameras, `frames` frames naming one image per camera.
+pub fn image_session(frames: usize, w: u32, h: u32) -> Value {
+    let cam = |id: &str| {
+        serde_json::json!({"id": id, "model": "pinhole", "width": w, "height": h,
+            "intrinsics": {"fx": 100.0, "fy": 100.0, "cx": (w as f64 - 1.0) / 2.0, "cy": (h as f64 - 1.0) / 2.0}})
+    };
+    let frames: Vec<Value> = (0..frames)
+        .map(|k| {
+            serde_json::json!({"index": k, "images": {"front": format!("front/{k:04}.png"), "rear": format!("rear/{k:04}.png")}})
+        })
+        .collect();
+    serde_json::json!({
+        "vehicle_id": "img-car",
+        "reference_camera": "front",
+        "cameras": [cam("front"), cam("rear")],
+        "targets": [{"type": "aprilgrid", "id": "board", "rows": 6, "cols": 6, "tag_size": 0.088, "tag_spacing": 0.3, "first_id": 0}],
+        "frames": frames,
+    })
+}
+
+/// CRC-32 of PNG chunks (to forge a valid header declaring a huge image).
+pub fn crc32(data: &[u8]) -> u32 {
+    let mut c = 0xffff_ffffu32;
+    for b in data {
+        c ^= *b as u32;
+        for _ in 0..8 {
+            c = if c & 1 != 0 {
+                0xedb8_8320 ^ (c >> 1)
+            } else {
+                c >> 1
+            };
+        }
+    }
+    !c
+}

@@ -1,0 +1,765 @@
+//! The service over real HTTP: a real `rigcal serve` process, a temp data directory,
+//! reqwest. The whole path from manifest (+ images, or an archive) to result; idempotent
+//! uploads; cancel; tenant isolation; every error kind, and that errors change nothing.
+
+mod common;
+
+use common::*;
+use serde_json::{json, Value};
+use std::time::Duration;
+
+const MIN: Duration = Duration::from_secs(60);
+
+/// Remove timings, which differ between two runs of the same computation.
+fn without_timings(mut v: Value) -> Value {
+    v["stages"] = Value::Null;
+    v
+}
+
+#[tokio::test]
+async fn detections_to_result_matches_the_cli_and_history_shows_drift() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+
+    let manifest = synth_session("lebraly-5.1", 3, 0.3, "car-7");
+    let sess = create_session(&c, &s, &manifest).await;
+    assert_eq!(sess["images_expected"], 0);
+    assert_eq!(sess["capture_check"]["verdict"], "ok");
+    let sid = sess["id"].as_str().unwrap();
+    let check: Value = c
+        .get(s.url(&format!("/v1/sessions/{sid}/check")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(check["non_planar_motion"], true);
+    assert_eq!(check["cameras"][1]["predicted_dof"]["translation"], 3);
+
+    let job = submit(&c, &s, sid).await;
+    assert_eq!(job["status"], "queued");
+    let id = job["id"].as_str().unwrap().to_string();
+
+    // Progress as server-sent events, to the terminal status.
+    let sse = c
+        .get(s.url(&format!("/v1/jobs/{id}/events")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(
+        sse.headers()["content-type"].to_str().unwrap(),
+        "text/event-stream"
+    );
+    let text = tokio::time::timeout(MIN, sse.text())
+        .await
+        .unwrap()
+        .unwrap();
+    assert!(text.contains("event: stage"), "{text}");
+    assert!(text.contains("rig_bundle_adjustment"), "{text}");
+    assert!(text.contains("\"status\":\"succeeded\""), "{text}");
+
+    let done = wait_job(&c, &s, &id, MIN).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["progress"], 1.0);
+    assert_eq!(done["attempts"], 1);
+    let result: Value = c
+        .get(s.url(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    // Exactly what `rigcal calibrate` prints for the same session.
+    let path = dir.path().join("session.json");
+    std::fs::write(&path, serde_json::to_vec(&manifest).unwrap()).unwrap();
+    let cli = std::process::Command::new(BIN)
+        .arg("calibrate")
+        .arg(&path)
+        .output()
+        .unwrap();
+    let cli: Value = serde_json::from_slice(&cli.stdout).unwrap();
+    assert_eq!(without_timings(result.clone()), without_timings(cli));
+
+    for (fmt, needle) in [
+        ("kalibr", "T_cn_cnm1"),
+        ("opencv", "%YAML"),
+        ("urdf", "<joint"),
+    ] {
+        let r = c
+            .get(s.url(&format!("/v1/jobs/{id}/result?format={fmt}")))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{fmt}");
+        let body = r.text().await.unwrap();
+        assert!(body.contains(needle), "{fmt}: {body}");
+    }
+    let diag: Value = c
+        .get(s.url(&format!("/v1/jobs/{id}/diagnostics")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(diag["residuals"]["per_camera"].is_array(), "{diag}");
+
+    // A second calibration of the same vehicle: the history shows the change (0 here:
+    // same data), a different capture shows a small but nonzero change.
+    let sess2 = create_session(&c, &s, &synth_session("lebraly-5.1", 4, 0.3, "car-7")).await;
+    let j2 = submit(&c, &s, sess2["id"].as_str().unwrap()).await;
+    wait_job(&c, &s, j2["id"].as_str().unwrap(), MIN).await;
+    let hist: Value = c
+        .get(s.url("/v1/vehicles/car-7/calibrations"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let cals = hist["calibrations"].as_array().unwrap();
+    assert_eq!(cals.len(), 2);
+    assert!(cals[0]["change_from_previous_accepted"].is_null());
+    let ch = &cals[1]["change_from_previous_accepted"][1];
+    let mm = ch["translation_mm"].as_f64().unwrap();
+    assert!(mm > 0.0 && mm < 100.0, "{ch}");
+
+    let list: Value = c
+        .get(s.url("/v1/jobs?vehicle_id=car-7&status=succeeded&limit=1"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(list["total"], 2);
+    assert_eq!(list["jobs"].as_array().unwrap().len(), 1);
+    assert_eq!(list["jobs"][0]["id"], j2["id"], "newest first");
+
+    let metrics = reqwest::get(s.url("/metrics"))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(
+        metrics.contains("rigcal_jobs{status=\"succeeded\"} 2"),
+        "{metrics}"
+    );
+    assert!(
+        metrics.contains("rigcal_stage_duration_seconds_count{stage=\"rig_bundle_adjustment\"}")
+    );
+    assert!(metrics.contains("route=\"/v1/jobs/{id}\""));
+}
+
+#[tokio::test]
+async fn a_singular_capture_is_degraded_never_succeeded() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &[]);
+    let c = client(&key);
+    let sess = create_session(&c, &s, &synth_session("car-planar", 1, 0.3, "car-p")).await;
+    assert_eq!(sess["capture_check"]["verdict"], "degraded");
+    let job = submit(&c, &s, sess["id"].as_str().unwrap()).await;
+    let done = wait_job(&c, &s, job["id"].as_str().unwrap(), MIN).await;
+    assert_eq!(done["status"], "degraded");
+    let r: Value = c
+        .get(s.url(&format!("/v1/jobs/{}/result", done["id"].as_str().unwrap())))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert!(r["reasons"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .any(|x| x["code"] == "planar_motion"));
+}
+
+#[tokio::test]
+async fn images_upload_idempotently_and_every_bad_image_is_refused_without_damage() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let c = client(&key);
+    let sess = create_session(&c, &s, &image_session(2, 64, 48)).await;
+    let sid = sess["id"].as_str().unwrap().to_string();
+    assert_eq!(sess["images_expected"], 4);
+    assert_eq!(sess["images_missing"].as_array().unwrap().len(), 4);
+    assert!(sess["capture_check"].is_null());
+    expect_problem(
+        c.get(s.url(&format!("/v1/sessions/{sid}/check")))
+            .send()
+            .await
+            .unwrap(),
+        409,
+        "check-not-ready",
+    )
+    .await;
+    // Incomplete sessions cannot be submitted.
+    let r = c
+        .post(s.url("/v1/jobs"))
+        .json(&json!({"session_id": sid}))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 409, "session-incomplete").await;
+
+    let put = |cam: &str, frame: &str, bytes: Vec<u8>| {
+        c.put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/{frame}")))
+            .header("content-type", "image/png")
+            .body(bytes)
+            .send()
+    };
+    let first = put("front", "0", png(64, 48, 1)).await.unwrap();
+    assert_eq!(first.status().as_u16(), 200);
+    let first: Value = first.json().await.unwrap();
+    let again = put("front", "0", png(64, 48, 1)).await.unwrap();
+    assert_eq!(again.status().as_u16(), 200);
+    assert_eq!(
+        again.json::<Value>().await.unwrap(),
+        first,
+        "same bytes, same answer"
+    );
+
+    // Errors, each leaving the stored image untouched.
+    expect_problem(
+        put("front", "0", png(64, 48, 2)).await.unwrap(),
+        409,
+        "image-conflict",
+    )
+    .await;
+    expect_problem(
+        put("rear", "0", png(65, 48, 1)).await.unwrap(),
+        422,
+        "image-size-mismatch",
+    )
+    .await;
+    let p = png(64, 48, 3);
+    expect_problem(
+        put("rear", "0", p[..p.len() - 20].to_vec()).await.unwrap(),
+        422,
+        "undecodable-image",
+    )
+    .await;
+    expect_problem(
+        put("rear", "0", b"GIF89a\x01\x00\x01\x00".to_vec())
+            .await
+            .unwrap(),
+        415,
+        "unsupported-image-format",
+    )
+    .await;
+    let mut bomb = png(1, 1, 0);
+    bomb[16..20].copy_from_slice(&60_000u32.to_be_bytes());
+    bomb[20..24].copy_from_slice(&60_000u32.to_be_bytes());
+    let crc = crc32(&bomb[12..29]);
+    bomb[29..33].copy_from_slice(&crc.to_be_bytes());
+    let b = expect_problem(
+        put("rear", "0", bomb).await.unwrap(),
+        422,
+        "image-too-large",
+    )
+    .await;
+    assert_eq!(b["field"], "image");
+    let b = expect_problem(
+        put("side", "0", png(64, 48, 1)).await.unwrap(),
+        404,
+        "unknown-camera",
+    )
+    .await;
+    assert_eq!(b["field"], "camera");
+    expect_problem(
+        put("rear", "7", png(64, 48, 1)).await.unwrap(),
+        404,
+        "unknown-frame",
+    )
+    .await;
+    expect_problem(
+        put("rear", "x", png(64, 48, 1)).await.unwrap(),
+        404,
+        "unknown-frame",
+    )
+    .await;
+
+    let now: Value = c
+        .get(s.url(&format!("/v1/sessions/{sid}")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(now["images_received"], 1);
+    assert_eq!(now["images_missing"].as_array().unwrap().len(), 3);
+
+    // The rest as a zip archive (with its session.json, equal to the manifest).
+    let mut zipped = Vec::new();
+    {
+        let mut z = zip::ZipWriter::new(std::io::Cursor::new(&mut zipped));
+        let o = zip::write::SimpleFileOptions::default();
+        z.start_file("session.json", o).unwrap();
+        std::io::Write::write_all(
+            &mut z,
+            &serde_json::to_vec(&image_session(2, 64, 48)).unwrap(),
+        )
+        .unwrap();
+        for (cam, k, seed) in [
+            ("front", 0, 1),
+            ("front", 1, 4),
+            ("rear", 0, 5),
+            ("rear", 1, 6),
+        ] {
+            z.start_file(format!("{cam}/{k:04}.png"), o).unwrap();
+            std::io::Write::write_all(&mut z, &png(64, 48, seed)).unwrap();
+        }
+        z.finish().unwrap();
+    }
+    let r = c
+        .post(s.url(&format!("/v1/sessions/{sid}/archive")))
+        .header("content-type", "application/zip")
+        .body(zipped)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["images_received"], 4);
+    assert_eq!(v["images_missing"].as_array().unwrap().len(), 0);
+    // Images are immutable: the first upload of front/0 is still the one stored.
+    let blob = dir
+        .path()
+        .join("blobs")
+        .join(&first["sha256"].as_str().unwrap()[..2])
+        .join(first["sha256"].as_str().unwrap());
+    assert_eq!(std::fs::read(blob).unwrap(), png(64, 48, 1));
+}
+
+#[tokio::test]
+async fn a_tar_archive_creates_a_whole_session_and_the_job_reports_missing_detection() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+    let manifest = image_session(1, 32, 24);
+    let mut tarred = Vec::new();
+    {
+        let mut t = tar::Builder::new(&mut tarred);
+        let mut add = |name: &str, bytes: &[u8]| {
+            let mut h = tar::Header::new_gnu();
+            h.set_size(bytes.len() as u64);
+            h.set_mode(0o644);
+            h.set_cksum();
+            t.append_data(&mut h, name, bytes).unwrap();
+        };
+        add(
+            "capture/session.json",
+            &serde_json::to_vec(&manifest).unwrap(),
+        );
+        add("capture/front/0000.png", &png(32, 24, 1));
+        add("capture/rear/0000.png", &png(32, 24, 2));
+        t.finish().unwrap();
+    }
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .header("content-type", "application/x-tar")
+        .body(tarred)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["images_received"], 2);
+    let job = submit(&c, &s, v["id"].as_str().unwrap()).await;
+    let done = wait_job(&c, &s, job["id"].as_str().unwrap(), MIN).await;
+    // This build calibrates from detections only: said plainly, not solved from nothing.
+    assert_eq!(done["status"], "failed");
+    assert_eq!(done["error"]["code"], "detection_unavailable");
+    // A bad archive: an image of the wrong size refuses the whole archive, no session.
+    let mut bad = Vec::new();
+    {
+        let mut t = tar::Builder::new(&mut bad);
+        for (name, bytes) in [
+            ("session.json", serde_json::to_vec(&manifest).unwrap()),
+            ("front/0000.png", png(32, 24, 1)),
+            ("rear/0000.png", png(31, 24, 1)),
+        ] {
+            let mut h = tar::Header::new_gnu();
+            h.set_size(bytes.len() as u64);
+            h.set_mode(0o644);
+            h.set_cksum();
+            t.append_data(&mut h, name, bytes.as_slice()).unwrap();
+        }
+        t.finish().unwrap();
+    }
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .header("content-type", "application/x-tar")
+        .body(bad)
+        .send()
+        .await
+        .unwrap();
+    let p = expect_problem(r, 422, "image-size-mismatch").await;
+    assert_eq!(p["field"], "frames[0].images.rear");
+}
+
+#[tokio::test]
+async fn every_request_error_is_a_problem_with_its_field_and_changes_nothing() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(
+        dir.path(),
+        &[
+            "--workers",
+            "0",
+            "--max-manifest-bytes",
+            "200000",
+            "--max-archive-bytes",
+            "300000",
+        ],
+    );
+    let c = client(&key);
+    let good = synth_session("lebraly-5.1", 1, 0.3, "car-e");
+    let sess = create_session(&c, &s, &good).await;
+    let sid = sess["id"].as_str().unwrap().to_string();
+    let job = submit(&c, &s, &sid).await;
+    let before: Value = c
+        .get(s.url("/v1/jobs"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let before_session: Value = c
+        .get(s.url(&format!("/v1/sessions/{sid}")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+
+    let post = |body: Vec<u8>| {
+        c.post(s.url("/v1/sessions"))
+            .header("content-type", "application/json")
+            .body(body)
+            .send()
+    };
+    expect_problem(
+        post(b"{\"cameras\": [".to_vec()).await.unwrap(),
+        400,
+        "malformed-json",
+    )
+    .await;
+    let mut m = good.clone();
+    m["cameras"][0]["intrinsics"]["fx"] = json!(-5.0);
+    let p = expect_problem(
+        post(serde_json::to_vec(&m).unwrap()).await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "cameras[0].intrinsics.fx");
+    let mut m = good.clone();
+    m["frames"][0]["observations"]["cam1"][0]["u"] = json!("left");
+    let p = expect_problem(
+        post(serde_json::to_vec(&m).unwrap()).await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "frames[0].observations.cam1[0].u");
+    let mut m = good.clone();
+    m["reference_camera"] = json!("nope");
+    let p = expect_problem(
+        post(serde_json::to_vec(&m).unwrap()).await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "reference_camera");
+    let mut m = good.clone();
+    let cam = m["cameras"][0].clone();
+    m["cameras"] = Value::Array(
+        (0..65)
+            .map(|i| {
+                let mut c = cam.clone();
+                c["id"] = json!(format!("c{i}"));
+                c
+            })
+            .collect(),
+    );
+    m["frames"] = json!([]);
+    m["reference_camera"] = json!("c0");
+    let p = expect_problem(
+        post(serde_json::to_vec(&m).unwrap()).await.unwrap(),
+        422,
+        "limit-exceeded",
+    )
+    .await;
+    assert_eq!(p["field"], "cameras");
+    let mut m = good.clone();
+    m["frames"] = Value::Array((0..100_001).map(|i| json!({"index": i})).collect());
+    // Over the (test-sized) body limit before it is even parsed.
+    expect_problem(
+        post(serde_json::to_vec(&m).unwrap()).await.unwrap(),
+        413,
+        "payload-too-large",
+    )
+    .await;
+    expect_problem(
+        c.post(s.url("/v1/sessions"))
+            .header("content-type", "text/plain")
+            .body("hi")
+            .send()
+            .await
+            .unwrap(),
+        415,
+        "unsupported-media-type",
+    )
+    .await;
+
+    // Jobs.
+    let pj = |v: Value| c.post(s.url("/v1/jobs")).json(&v).send();
+    let p = expect_problem(
+        pj(json!({"session_id": "nope"})).await.unwrap(),
+        422,
+        "unknown-session",
+    )
+    .await;
+    assert_eq!(p["field"], "session_id");
+    let p = expect_problem(
+        pj(json!({"session_id": sid, "options": {"loss": "l1"}}))
+            .await
+            .unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "options.loss");
+    let p = expect_problem(
+        pj(json!({"session_id": sid, "priority": 3})).await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert!(p["detail"].as_str().unwrap().contains("priority"));
+    let p = expect_problem(
+        c.get(s.url("/v1/jobs?status=done")).send().await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "status");
+    let p = expect_problem(
+        c.get(s.url("/v1/jobs?limit=0")).send().await.unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "limit");
+    expect_problem(
+        c.get(s.url("/v1/jobs?colour=red")).send().await.unwrap(),
+        400,
+        "invalid-query",
+    )
+    .await;
+    let jid = job["id"].as_str().unwrap();
+    expect_problem(
+        c.get(s.url(&format!("/v1/jobs/{jid}/result")))
+            .send()
+            .await
+            .unwrap(),
+        409,
+        "result-not-ready",
+    )
+    .await;
+    expect_problem(
+        c.get(s.url(&format!("/v1/jobs/{jid}/result?format=pdf")))
+            .send()
+            .await
+            .unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    expect_problem(
+        c.get(s.url("/v1/jobs/nope")).send().await.unwrap(),
+        404,
+        "not-found",
+    )
+    .await;
+
+    // Routing and auth.
+    expect_problem(
+        c.get(s.url("/v2/everything")).send().await.unwrap(),
+        404,
+        "not-found",
+    )
+    .await;
+    expect_problem(
+        c.patch(s.url("/v1/jobs")).send().await.unwrap(),
+        405,
+        "method-not-allowed",
+    )
+    .await;
+    expect_problem(
+        reqwest::get(s.url("/v1/jobs")).await.unwrap(),
+        401,
+        "unauthorized",
+    )
+    .await;
+    expect_problem(
+        client("rk_wrong")
+            .get(s.url("/v1/jobs"))
+            .send()
+            .await
+            .unwrap(),
+        401,
+        "unauthorized",
+    )
+    .await;
+
+    let after: Value = c
+        .get(s.url("/v1/jobs"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(after["total"], before["total"]);
+    let after_session: Value = c
+        .get(s.url(&format!("/v1/sessions/{sid}")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(after_session, before_session);
+}
+
+#[tokio::test]
+async fn cancel_a_queued_job_and_tenants_never_see_each_other() {
+    let dir = tempfile::tempdir().unwrap();
+    let acme = client(&api_key(dir.path(), "acme"));
+    let globex = client(&api_key(dir.path(), "globex"));
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let sess = create_session(&acme, &s, &synth_session("lebraly-5.1", 2, 0.3, "car-a")).await;
+    let sid = sess["id"].as_str().unwrap();
+    let job = submit(&acme, &s, sid).await;
+    let jid = job["id"].as_str().unwrap();
+
+    for path in [
+        format!("/v1/sessions/{sid}"),
+        format!("/v1/sessions/{sid}/check"),
+        format!("/v1/jobs/{jid}"),
+        format!("/v1/jobs/{jid}/result"),
+        format!("/v1/jobs/{jid}/events"),
+        "/v1/vehicles/car-a/calibrations".to_string(),
+    ] {
+        expect_problem(
+            globex.get(s.url(&path)).send().await.unwrap(),
+            404,
+            "not-found",
+        )
+        .await;
+    }
+    expect_problem(
+        globex
+            .delete(s.url(&format!("/v1/jobs/{jid}")))
+            .send()
+            .await
+            .unwrap(),
+        404,
+        "not-found",
+    )
+    .await;
+    let r = globex
+        .post(s.url("/v1/jobs"))
+        .json(&json!({"session_id": sid}))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 422, "unknown-session").await;
+    let r = globex
+        .put(s.url(&format!("/v1/sessions/{sid}/images/cam1/0")))
+        .body(png(8, 8, 0))
+        .send()
+        .await
+        .unwrap();
+    expect_problem(r, 404, "not-found").await;
+    let list: Value = globex
+        .get(s.url("/v1/jobs"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(list["total"], 0);
+
+    // Cancel (no workers: the job is still queued).
+    let r = acme
+        .delete(s.url(&format!("/v1/jobs/{jid}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 202);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["status"], "cancelled");
+    expect_problem(
+        acme.delete(s.url(&format!("/v1/jobs/{jid}")))
+            .send()
+            .await
+            .unwrap(),
+        409,
+        "job-finished",
+    )
+    .await;
+    expect_problem(
+        acme.get(s.url(&format!("/v1/jobs/{jid}/result")))
+            .send()
+            .await
+            .unwrap(),
+        409,
+        "no-result",
+    )
+    .await;
+}
+
+#[tokio::test]
+async fn operations_endpoints_answer() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    for (path, ct) in [
+        ("/healthz", "application/json"),
+        ("/readyz", "application/json"),
+        ("/metrics", "text/plain; version=0.0.4; charset=utf-8"),
+        ("/openapi.yaml", "application/yaml"),
+        ("/docs", "text/html; charset=utf-8"),
+    ] {
+        let r = reqwest::get(s.url(path)).await.unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{path}");
+        assert_eq!(r.headers()["content-type"].to_str().unwrap(), ct, "{path}");
+    }
+    let docs = reqwest::get(s.url("/docs"))
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    assert!(docs.contains("/v1/jobs/{id}/events"));
+    assert!(
+        !docs.contains("http://") && !docs.contains("https://"),
+        "no external assets"
+    );
+}
