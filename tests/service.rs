@@ -530,7 +530,7 @@ async fn every_request_error_is_a_problem_with_its_field_and_changes_nothing() {
     let pj = |v: Value| c.post(s.url("/v1/jobs")).json(&v).send();
     let p = expect_problem(
         pj(json!({"session_id": "nope"})).await.unwrap(),
-        422,
+        404,
         "unknown-session",
     )
     .await;
@@ -689,7 +689,7 @@ async fn cancel_a_queued_job_and_tenants_never_see_each_other() {
         .send()
         .await
         .unwrap();
-    expect_problem(r, 422, "unknown-session").await;
+    expect_problem(r, 404, "unknown-session").await;
     let r = globex
         .put(s.url(&format!("/v1/sessions/{sid}/images/cam1/0")))
         .body(png(8, 8, 0))

@@ -86,7 +86,7 @@ pub async fn create(
         .await?
         .ok_or_else(|| {
             ApiError::new(
-                StatusCode::UNPROCESSABLE_ENTITY,
+                StatusCode::NOT_FOUND,
                 "unknown-session",
                 format!(
                     "session_id: an existing session of this tenant, got {:?}",
