@@ -129,3 +129,23 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
         assert_eq!(terminal, 1, "job {id}");
     }
 }
+
+#[tokio::test]
+async fn a_separate_worker_process_runs_the_jobs_of_an_api_only_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let c = client(&key);
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let mut worker = std::process::Command::new(BIN)
+        .args(["worker", "--workers", "1", "--data-dir"])
+        .arg(dir.path())
+        .env("RUST_LOG", "warn")
+        .spawn()
+        .unwrap();
+    let sess = create_session(&c, &s, &synth_session("lebraly-5.1", 5, 0.3, "car-w")).await;
+    let job = submit(&c, &s, sess["id"].as_str().unwrap()).await;
+    let done = wait_job(&c, &s, job["id"].as_str().unwrap(), Duration::from_secs(60)).await;
+    let _ = worker.kill();
+    let _ = worker.wait();
+    assert_eq!(done["status"], "succeeded", "{done}");
+}

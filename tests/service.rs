@@ -763,3 +763,48 @@ async fn operations_endpoints_answer() {
         "no external assets"
     );
 }
+
+#[tokio::test]
+async fn cancelling_a_running_job_stops_it_between_stages() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+    // A 16-pose loop: several seconds of work in trajectories and the rig BA.
+    let sess = create_session(&c, &s, &synth_session("car-planar-loop", 0, 0.5, "car-x")).await;
+    let job = submit(&c, &s, sess["id"].as_str().unwrap()).await;
+    let id = job["id"].as_str().unwrap().to_string();
+    let t = std::time::Instant::now();
+    loop {
+        let j: Value = c
+            .get(s.url(&format!("/v1/jobs/{id}")))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if j["status"] == "running" {
+            break;
+        }
+        assert!(t.elapsed() < MIN, "{j}");
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let r = c
+        .delete(s.url(&format!("/v1/jobs/{id}")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 202);
+    let done = wait_job(&c, &s, &id, MIN).await;
+    assert_eq!(done["status"], "cancelled", "{done}");
+    expect_problem(
+        c.get(s.url(&format!("/v1/jobs/{id}/result")))
+            .send()
+            .await
+            .unwrap(),
+        409,
+        "no-result",
+    )
+    .await;
+}

@@ -155,7 +155,9 @@ async fn run_job(
         }))
     });
     tokio::pin!(solve);
-    let mut beat = tokio::time::interval(cfg.lease / 3);
+    // The heartbeat renews the lease and reads the cancel flag; twice a second at most
+    // so a cancel is seen before the next stage boundary, at the cost of one UPDATE.
+    let mut beat = tokio::time::interval((cfg.lease / 3).min(Duration::from_millis(500)));
     beat.tick().await;
     let mut current: Option<(String, Instant)> = None;
     let lease_ms = cfg.lease.as_millis() as i64;

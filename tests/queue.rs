@@ -1,0 +1,142 @@
+//! Queue semantics on a real SQLite database: atomic claims, leases, exactly-once
+//! completion, retry with backoff, attempt limits, cancellation.
+
+use rigcal::jobs::queue::Queue;
+use rigcal::store::Store;
+use serde_json::json;
+
+async fn setup() -> (tempfile::TempDir, Store, Queue, String, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let store = Store::open(dir.path()).await.unwrap();
+    let t = store.ensure_tenant("acme").await.unwrap();
+    let s = store
+        .insert_session(&t, Some("car"), "motion", "{}", None)
+        .await
+        .unwrap();
+    let q = Queue::new(store.pool.clone());
+    (dir, store, q, t.id, s.id)
+}
+
+#[tokio::test]
+async fn two_workers_never_hold_the_same_job() {
+    let (_d, _s, q, t, s) = setup().await;
+    for _ in 0..20 {
+        q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    }
+    let mut tasks = Vec::new();
+    for w in 0..4 {
+        let q = q.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut got = Vec::new();
+            while let Some(j) = q.claim(&format!("w{w}"), 60_000).await.unwrap() {
+                got.push(j.id);
+            }
+            got
+        }));
+    }
+    let mut all = Vec::new();
+    for t in tasks {
+        all.extend(t.await.unwrap());
+    }
+    let n = all.len();
+    all.sort();
+    all.dedup();
+    assert_eq!((n, all.len()), (20, 20));
+}
+
+#[tokio::test]
+async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
+    let (_d, _s, q, t, s) = setup().await;
+    let job = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    let a = q.claim("a", 1).await.unwrap().unwrap();
+    assert_eq!(a.id, job.id);
+    tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    let b = q.claim("b", 60_000).await.unwrap().expect("re-claimed");
+    assert_eq!((b.id.as_str(), b.attempts), (job.id.as_str(), 2));
+    // The presumed-dead owner wakes up: nothing it does is written.
+    assert_eq!(q.heartbeat(&job.id, "a", 60_000).await.unwrap(), None);
+    assert!(q
+        .progress(&job.id, "a", "trajectories", 0.1)
+        .await
+        .unwrap()
+        .is_none());
+    assert!(!q
+        .complete(&job.id, "a", "succeeded", "{}", None, None)
+        .await
+        .unwrap());
+    assert!(q
+        .complete(&job.id, "b", "succeeded", "{\"x\":1}", Some(0.3), None)
+        .await
+        .unwrap());
+    assert!(!q
+        .complete(&job.id, "b", "succeeded", "{}", None, None)
+        .await
+        .unwrap());
+    assert_eq!(
+        q.result(&t, &job.id).await.unwrap().as_deref(),
+        Some("{\"x\":1}")
+    );
+}
+
+#[tokio::test]
+async fn transient_failures_back_off_then_fail_at_the_limit() {
+    let (_d, _s, q, t, s) = setup().await;
+    let job = q.enqueue(&t, &s, None, "motion", "{}", 2).await.unwrap();
+    let p = json!({"code": "storage_error", "detail": "disk full"});
+    q.claim("w", 60_000).await.unwrap().unwrap();
+    assert_eq!(q.fail(&job.id, "w", &p, true, 200).await.unwrap(), "queued");
+    // Not due yet: the backoff holds it.
+    assert!(q.claim("w", 60_000).await.unwrap().is_none());
+    tokio::time::sleep(std::time::Duration::from_millis(250)).await;
+    let again = q.claim("w", 60_000).await.unwrap().unwrap();
+    assert_eq!(again.attempts, 2);
+    assert_eq!(q.fail(&job.id, "w", &p, true, 200).await.unwrap(), "failed");
+    let j = q.get(&job.id).await.unwrap().unwrap();
+    assert_eq!(j.status, "failed");
+    assert!(j.error.unwrap().contains("disk full"));
+    // Bad input: failed at once, whatever attempts remain.
+    let job2 = q.enqueue(&t, &s, None, "motion", "{}", 5).await.unwrap();
+    q.claim("w", 60_000).await.unwrap().unwrap();
+    assert_eq!(
+        q.fail(&job2.id, "w", &p, false, 200).await.unwrap(),
+        "failed"
+    );
+}
+
+#[tokio::test]
+async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
+    let (_d, _s, q, t, s) = setup().await;
+    let queued = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    assert_eq!(
+        q.cancel(&t, &queued.id).await.unwrap().unwrap().status,
+        "cancelled"
+    );
+    let running = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    q.claim("w", 60_000).await.unwrap().unwrap();
+    assert_eq!(
+        q.cancel(&t, &running.id).await.unwrap().unwrap().status,
+        "running"
+    );
+    assert_eq!(
+        q.heartbeat(&running.id, "w", 60_000).await.unwrap(),
+        Some(true)
+    );
+    assert_eq!(
+        q.progress(&running.id, "w", "initialisation", 0.4)
+            .await
+            .unwrap(),
+        Some(true)
+    );
+    assert!(q
+        .mark_cancelled(&running.id, "w", "initialisation")
+        .await
+        .unwrap());
+    assert_eq!(
+        q.get(&running.id).await.unwrap().unwrap().status,
+        "cancelled"
+    );
+    // Another tenant cannot cancel.
+    let other = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    assert!(q.cancel("someone-else", &other.id).await.unwrap().is_none());
+    assert_eq!(q.get(&other.id).await.unwrap().unwrap().status, "queued");
+}
