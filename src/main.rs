@@ -177,6 +177,16 @@ enum BenchCommand {
         #[arg(long, default_value_t = 1000)]
         seed: u64,
     },
+    /// Vanishing method on Wu's Table 2 ring: chainwise vs global RMS errors per camera.
+    Ring {
+        #[arg(long, default_value_t = 50)]
+        trials: usize,
+        /// Comma-separated pixel noise levels.
+        #[arg(long, default_value = "0.2,0.5,1.0", value_delimiter = ',')]
+        noise: Vec<f64>,
+        #[arg(long, default_value_t = 1000)]
+        seed: u64,
+    },
     /// Wall time, iterations and final cost of the rig bundle adjustment.
     Speed {
         #[arg(long, default_value_t = 6)]
@@ -346,6 +356,21 @@ fn run() -> Result<i32> {
             }
             let rows = rigcal::bench::accuracy::accuracy(&preset, &noise, trials, seed);
             rigcal::bench::accuracy::print_table(&preset, &rows);
+            Ok(0)
+        }
+        Command::Bench {
+            what:
+                BenchCommand::Ring {
+                    trials,
+                    noise,
+                    seed,
+                },
+        } => {
+            if noise.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
+                return Err(anyhow!("--noise: positive pixel σ values, got {noise:?}"));
+            }
+            let rows = rigcal::bench::ring::ring_accuracy(&noise, trials, seed);
+            rigcal::bench::ring::print_table(&rows);
             Ok(0)
         }
         Command::Bench {

@@ -75,11 +75,13 @@ pub struct Stats {
 }
 
 impl Stats {
+    /// Statistics of the finite values (a residual that could not be computed is
+    /// reported elsewhere, never as a `null` here).
     pub fn of(values: &[f64]) -> Stats {
-        if values.is_empty() {
+        let mut v: Vec<f64> = values.iter().copied().filter(|x| x.is_finite()).collect();
+        if v.is_empty() {
             return Stats::default();
         }
-        let mut v = values.to_vec();
         v.sort_by(f64::total_cmp);
         let q = |p: f64| v[((v.len() - 1) as f64 * p).round() as usize];
         Stats {
@@ -111,6 +113,20 @@ pub struct Histogram {
     /// Bin edges in pixels (one more than `counts`); the last bin is open-ended.
     pub edges_px: Vec<f64>,
     pub counts: Vec<usize>,
+}
+
+impl Histogram {
+    /// `bins` equal bins from 0 to the largest value.
+    pub fn of(values: &[f64], bins: usize) -> Histogram {
+        let maxv = values.iter().copied().fold(0.0, f64::max);
+        let top = if maxv > 0.0 { maxv } else { 1.0 };
+        let edges_px = (0..=bins).map(|i| top * i as f64 / bins as f64).collect();
+        let mut counts = vec![0; bins];
+        for e in values {
+            counts[((e / top * bins as f64) as usize).min(bins - 1)] += 1;
+        }
+        Histogram { edges_px, counts }
+    }
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -197,6 +213,70 @@ pub struct Stage {
     pub seconds: f64,
 }
 
+/// Chain closure error: how far the pair transforms chained round the ring miss the
+/// reference before the global optimisation.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ClosureError {
+    /// The closing pair (the auxiliary view not used by the chain).
+    pub pair: [String; 2],
+    pub translation_m: f64,
+    pub rotation_deg: f64,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct PairReport {
+    pub targets: [String; 2],
+    /// Auxiliary views of this pair that were used (fused when more than one).
+    pub views: usize,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct VanishingCamera {
+    pub camera: String,
+    pub target: String,
+    /// Targets from the reference target to this camera's, in chain order.
+    pub chain: Vec<String>,
+    /// Pair transforms composed by the chainwise initialisation (eq. 23).
+    pub chain_transforms: usize,
+    /// The chainwise extrinsic (before the ring-closure optimisation).
+    pub chainwise: ExtrinsicValue,
+    pub chainwise_sigma_translation_m: [f64; 3],
+    pub chainwise_sigma_rotation_deg: [f64; 3],
+    /// 1-σ of this camera's own camera–target pose (camera frame): with the chain's, the
+    /// two contributions to the extrinsic's σ.
+    pub target_pose_sigma_translation_m: [f64; 3],
+    pub target_pose_sigma_rotation_deg: [f64; 3],
+    /// `vanishing_points`, or `homography` where a vanishing point was at infinity.
+    pub initialised_from: String,
+    /// Angle (deg) of the target's z and x line directions above the image plane; near 0
+    /// puts the vanishing point at infinity.
+    pub line_elevation_deg: [f64; 2],
+    /// Point-to-line residuals (px) of this camera's own image.
+    pub residuals: Stats,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RingViewReport {
+    pub index: i64,
+    pub targets: [String; 2],
+    pub initialised_from: [String; 2],
+    /// Point-to-line residuals (px) after the ring-closure optimisation.
+    pub residuals: Stats,
+}
+
+/// What the vanishing method adds to the result document.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct VanishingReport {
+    pub reference_target: String,
+    /// Some auxiliary view closes a loop of targets (the ring constraint was used).
+    pub ring_closed: bool,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub closure_error: Option<ClosureError>,
+    pub pairs: Vec<PairReport>,
+    pub cameras: Vec<VanishingCamera>,
+    pub ring_views: Vec<RingViewReport>,
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ResultDocument {
     pub rigcal_version: String,
@@ -209,7 +289,10 @@ pub struct ResultDocument {
     pub residuals: Option<Residuals>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub singularity: Option<Singularity>,
-    /// The linear initialisation, for comparison with the refined extrinsics.
+    /// Vanishing method only: chainwise vs global results, ring closure, per-view residuals.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vanishing: Option<VanishingReport>,
+    /// The linear initialisation (motion) or the chainwise result (vanishing), for comparison with the refined extrinsics.
     pub initialisation: Vec<ExtrinsicValue>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solver: Option<SolverReport>,

@@ -79,24 +79,49 @@ async fn record_latency(State(state): State<AppState>, req: Request, next: Next)
     resp
 }
 
+/// A route's body limit: refused up front when the declared `Content-Length` exceeds it
+/// (tower-http: the client learns before uploading, and never sees a reset connection
+/// instead of the 413), and while reading otherwise (axum's extractor limit, for chunked
+/// bodies). `problem_fallback` turns the bare 413 into problem+json.
+fn body_limit(
+    max: usize,
+) -> tower::ServiceBuilder<
+    tower::layer::util::Stack<
+        DefaultBodyLimit,
+        tower::layer::util::Stack<
+            tower_http::limit::RequestBodyLimitLayer,
+            tower::layer::util::Identity,
+        >,
+    >,
+> {
+    tower::ServiceBuilder::new()
+        .layer(tower_http::limit::RequestBodyLimitLayer::new(max))
+        .layer(DefaultBodyLimit::max(max))
+}
+
 pub fn build_app(state: AppState) -> Router {
     let cfg = state.config.clone();
     let v1 = Router::new()
         .route(
             "/sessions",
-            post(sessions::create).layer(DefaultBodyLimit::max(cfg.max_archive_bytes)),
+            post(sessions::create).layer(body_limit(cfg.max_archive_bytes)),
         )
         .route("/sessions/{id}", get(sessions::show))
         .route("/sessions/{id}/check", get(sessions::check))
         .route(
             "/sessions/{id}/images/{camera}/{frame}",
-            put(sessions::put_image).layer(DefaultBodyLimit::max(cfg.max_image_bytes)),
+            put(sessions::put_image).layer(body_limit(cfg.max_image_bytes)),
         )
         .route(
             "/sessions/{id}/archive",
-            post(sessions::archive).layer(DefaultBodyLimit::max(cfg.max_archive_bytes)),
+            post(sessions::archive).layer(body_limit(cfg.max_archive_bytes)),
         )
-        .route("/jobs", post(jobs::create).get(jobs::list))
+        .route(
+            "/jobs",
+            post(jobs::create)
+                .layer(body_limit(cfg.max_manifest_bytes))
+                .get(jobs::list),
+        )
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
         .route("/jobs/{id}/events", get(jobs::events))
         .route("/jobs/{id}/result", get(jobs::result))

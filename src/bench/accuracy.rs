@@ -28,7 +28,7 @@ pub struct AccuracyRow {
     pub nees: f64,
 }
 
-fn pose_of(v: &ExtrinsicValue) -> Pose {
+pub(crate) fn pose_of(v: &ExtrinsicValue) -> Pose {
     let m = v.ref_from_cam;
     Pose::new(
         nalgebra::Matrix3::new(
@@ -39,7 +39,7 @@ fn pose_of(v: &ExtrinsicValue) -> Pose {
 }
 
 /// Error `[dt; dφ]` of `est` against `truth` in the parametrisation of the covariance.
-fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
+pub(crate) fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
     let dt = est.trans - truth.trans;
     let dphi = so3::log(&(est.rot * truth.rot.transpose()));
     SVector::<f64, 6>::from_iterator(dt.iter().chain(dphi.iter()).copied())

@@ -3,4 +3,5 @@
 //! numbers are recorded in `docs/accuracy.md` and `docs/performance.md`.
 
 pub mod accuracy;
+pub mod ring;
 pub mod speed;

@@ -121,14 +121,6 @@ pub fn residual_report(session: &Session, ba: &RigBaOutput) -> Residuals {
             per_frame.entry(k.frame).or_default().push(e);
         }
     }
-    let maxv = all.iter().copied().fold(0.0, f64::max);
-    let top = if maxv > 0.0 { maxv } else { 1.0 };
-    let bins = 20;
-    let edges: Vec<f64> = (0..=bins).map(|i| top * i as f64 / bins as f64).collect();
-    let mut counts = vec![0; bins];
-    for e in &all {
-        counts[((e / top * bins as f64) as usize).min(bins - 1)] += 1;
-    }
     Residuals {
         all: Stats::of(&all),
         inliers: all.len(),
@@ -147,10 +139,7 @@ pub fn residual_report(session: &Session, ba: &RigBaOutput) -> Residuals {
                 stats: Stats::of(&v),
             })
             .collect(),
-        histogram: Histogram {
-            edges_px: edges,
-            counts,
-        },
+        histogram: Histogram::of(&all, 20),
         outlier_list: ba
             .outliers
             .iter()

@@ -8,6 +8,7 @@ pub mod pnp;
 pub mod rig_ba;
 pub mod trajectory;
 pub mod twoview;
+pub mod vanishing;
 
 use crate::session::PointKind;
 use crate::solver::bundle::PointRef;

@@ -161,20 +161,34 @@ async fn run_job(
     beat.tick().await;
     let mut current: Option<(String, Instant)> = None;
     let lease_ms = cfg.lease.as_millis() as i64;
+    let record = |stage: String, fraction: f64, current: &mut Option<(String, Instant)>| {
+        if let Some((s, t)) = current.take() {
+            metrics.stage(&s, t.elapsed().as_secs_f64());
+        }
+        *current = Some((stage.clone(), Instant::now()));
+        let (queue, id, stop, lost) = (queue.clone(), job.id.clone(), stop.clone(), lost.clone());
+        async move {
+            match queue.progress(&id, name, &stage, fraction).await {
+                Ok(Some(cancel)) => {
+                    if cancel {
+                        stop.store(true, Ordering::SeqCst)
+                    }
+                }
+                Ok(None) => {
+                    lost.store(true, Ordering::SeqCst);
+                    stop.store(true, Ordering::SeqCst);
+                }
+                Err(e) => tracing::warn!(job = %id, "progress update failed: {e}"),
+            }
+        }
+    };
     let outcome = loop {
         tokio::select! {
+            // Stage reports first: a fast solve must not finish the job before the
+            // stages it went through are recorded.
+            biased;
+            Some((stage, fraction)) = rx.recv() => record(stage, fraction, &mut current).await,
             r = &mut solve => break r,
-            Some((stage, fraction)) = rx.recv() => {
-                if let Some((s, t)) = current.take() {
-                    metrics.stage(&s, t.elapsed().as_secs_f64());
-                }
-                current = Some((stage.clone(), Instant::now()));
-                match queue.progress(&job.id, name, &stage, fraction).await {
-                    Ok(Some(cancel)) => if cancel { stop.store(true, Ordering::SeqCst) },
-                    Ok(None) => { lost.store(true, Ordering::SeqCst); stop.store(true, Ordering::SeqCst); }
-                    Err(e) => tracing::warn!(job = %job.id, "progress update failed: {e}"),
-                }
-            }
             _ = beat.tick() => {
                 match queue.heartbeat(&job.id, name, lease_ms).await {
                     Ok(Some(cancel)) => if cancel { stop.store(true, Ordering::SeqCst) },
@@ -184,6 +198,10 @@ async fn run_job(
             }
         }
     };
+    // Stages reported between the last poll and the end of the solve.
+    while let Ok((stage, fraction)) = rx.try_recv() {
+        record(stage, fraction, &mut current).await;
+    }
     if let Some((s, t)) = current.take() {
         metrics.stage(&s, t.elapsed().as_secs_f64());
     }

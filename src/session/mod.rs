@@ -1,9 +1,11 @@
 //! Capture-session manifests: the wire format (`raw`), and the validated domain type
 //! ([`Session`]) that every stage downstream takes. Parse once, never re-validate.
 
+mod lines;
 mod raw;
 mod validate;
 
+pub use lines::{LineObs, LineTargetDef, RingView, VanishingInput};
 pub use raw::*;
 pub use validate::{parse_session, resolve_points, PointKind, ResolvedPoints, Session};
 

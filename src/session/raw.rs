@@ -22,6 +22,12 @@ pub struct SessionManifest {
     pub frames: Vec<FrameSpec>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub priors: Option<Priors>,
+    /// Vanishing method: the hand-held camera that photographs neighbouring target pairs.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub auxiliary_camera: Option<CameraSpec>,
+    /// Vanishing method: the auxiliary camera's views, each of (at least) two targets.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ring: Vec<RingSpec>,
 }
 
 fn default_version() -> u32 {
@@ -125,6 +131,36 @@ pub struct FrameSpec {
     /// Camera id → detections.
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub observations: BTreeMap<String, Vec<ObservationSpec>>,
+    /// Camera id → points of the feature lines of line targets (vanishing method).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub lines: BTreeMap<String, Vec<LineSpec>>,
+}
+
+/// Points measured along one feature line `l1..l6` of a line target (Wu et al. Fig. 1),
+/// in raw (distorted) pixels. See `docs/formats.md` for the line numbering.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LineSpec {
+    pub target: String,
+    /// 1..=6.
+    pub line: u8,
+    /// `[u, v]` pixel coordinates of points on the line.
+    pub points: Vec<[f64; 2]>,
+}
+
+/// One image of the auxiliary camera showing two neighbouring targets.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RingSpec {
+    pub index: i64,
+    /// The ids of the two line targets in view.
+    pub targets: Vec<String>,
+    /// Image path (relative to the manifest), for sessions of images.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
+    /// Detected line points of both targets.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub lines: Vec<LineSpec>,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -1,5 +1,6 @@
 //! Validation: the manifest becomes a [`Session`] or an [`InputError`] naming the field.
 
+use super::lines::{validate_vanishing, VanishingInput};
 use super::raw::*;
 use super::InputError;
 use crate::geometry::{Camera, CameraModel, Vec2, Vec3};
@@ -91,6 +92,8 @@ pub struct Session {
     pub distances: Vec<Distance>,
     /// Per camera: prior height above the reference camera along the motion-plane normal.
     pub height_priors: Vec<Option<f64>>,
+    /// The vanishing method's targets, line points and ring (method `vanishing` only).
+    pub vanishing: Option<VanishingInput>,
 }
 
 impl Session {
@@ -122,7 +125,7 @@ pub fn parse_session(bytes: &[u8]) -> Result<Session, InputError> {
     validate(manifest)
 }
 
-fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
+pub(super) fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
     let d = &spec.distortion;
     for (k, x) in d.iter().enumerate() {
         finite(format!("{at}.distortion[{k}]"), *x)?;
@@ -218,6 +221,25 @@ fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
         width: spec.width,
         height: spec.height,
     })
+}
+
+/// Image paths are relative to the manifest and stay inside the session.
+pub(super) fn check_image_path(path: &str, field: &str) -> Result<(), InputError> {
+    let safe = !path.is_empty()
+        && path.len() <= 512
+        && !path.starts_with('/')
+        && !path.contains('\\')
+        && path
+            .split('/')
+            .all(|p| !p.is_empty() && p != "." && p != "..");
+    if safe {
+        Ok(())
+    } else {
+        Err(InputError::new(
+            field,
+            format!("a relative image path without '..' (at most 512 characters), got {path:?}"),
+        ))
+    }
 }
 
 /// Parse `tag:<id>:<corner>`.
@@ -454,6 +476,21 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             }
         }
     }
+    let motion_only = |field: &str, present: bool| {
+        if present && m.method == Method::Motion {
+            Err(InputError::new(
+                field,
+                "absent in a motion-method session (it belongs to method \"vanishing\")",
+            ))
+        } else {
+            Ok(())
+        }
+    };
+    motion_only("auxiliary_camera", m.auxiliary_camera.is_some())?;
+    motion_only("ring", !m.ring.is_empty())?;
+    for (fi, f) in m.frames.iter().enumerate() {
+        motion_only(&format!("frames[{fi}].lines"), !f.lines.is_empty())?;
+    }
     if m.method == Method::Motion
         && m.targets
             .iter()
@@ -481,21 +518,7 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             }
         }
         for (cam, path) in &f.images {
-            let safe = !path.is_empty()
-                && path.len() <= 512
-                && !path.starts_with('/')
-                && !path.contains('\\')
-                && path
-                    .split('/')
-                    .all(|p| !p.is_empty() && p != "." && p != "..");
-            if !safe {
-                return Err(InputError::new(
-                    format!("frames[{fi}].images.{cam}"),
-                    format!(
-                        "a relative image path without '..' (at most 512 characters), got {path:?}"
-                    ),
-                ));
-            }
+            check_image_path(path, &format!("frames[{fi}].images.{cam}"))?;
         }
         for (cam, obs) in &f.observations {
             let ci = *cam_index.get(cam.as_str()).ok_or_else(|| {
@@ -613,7 +636,13 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
         }
     }
 
+    let vanishing = if m.method == Method::Vanishing {
+        Some(validate_vanishing(&m, &cameras)?)
+    } else {
+        None
+    };
     Ok(Session {
+        vanishing,
         manifest: m,
         cameras,
         reference,

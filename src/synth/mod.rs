@@ -22,7 +22,10 @@ pub const PRESETS: &[&str] = &[
     "car-bump",
     "pure-translation",
     "single-axis",
+    "wu-table2",
 ];
+
+pub mod ring;
 
 /// The ground truth written next to a synthetic session.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -320,6 +323,9 @@ pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManife
         return None;
     }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    if preset == "wu-table2" {
+        return Some(ring::generate(&mut rng, noise_px));
+    }
     let sc = if preset == "lebraly-5.1" {
         lebraly(&mut rng)
     } else {
@@ -370,6 +376,7 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
             timestamp: Some(k as f64 * 0.5),
             images: BTreeMap::new(),
             observations,
+            lines: BTreeMap::new(),
         });
     }
     let mut scale = Vec::new();
@@ -413,6 +420,8 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
         scale,
         frames,
         priors: None,
+        auxiliary_camera: None,
+        ring: vec![],
     };
     let truth = Truth {
         preset: sc.preset.clone(),

@@ -13,6 +13,8 @@ use crate::session::{Method, Session};
 use crate::solver::bundle::LmOptions;
 use std::time::Instant;
 
+mod vanishing;
+
 /// The rig is inconsistent when its residual σ exceeds this multiple of the scenes' σ
 /// plus the floor (px): at matching noise the two agree within a few percent.
 pub const INCONSISTENT_SIGMA_RATIO: f64 = 1.5;
@@ -65,7 +67,7 @@ pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
     }
 }
 
-fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reason {
+pub(crate) fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reason {
     Reason {
         code: code.into(),
         message: message.into(),
@@ -73,16 +75,25 @@ fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reaso
     }
 }
 
-fn failed(session: &Session, reasons: Vec<Reason>, stages: Vec<Stage>) -> ResultDocument {
+pub(crate) fn failed(
+    session: &Session,
+    reasons: Vec<Reason>,
+    stages: Vec<Stage>,
+) -> ResultDocument {
     ResultDocument {
         rigcal_version: env!("CARGO_PKG_VERSION").into(),
-        method: "motion".into(),
+        method: match session.manifest.method {
+            Method::Motion => "motion",
+            Method::Vanishing => "vanishing",
+        }
+        .into(),
         status: Status::Failed,
         reasons,
         reference_camera: session.cameras[session.reference].id.clone(),
         extrinsics: vec![],
         residuals: None,
         singularity: None,
+        vanishing: None,
         initialisation: vec![],
         solver: None,
         stages,
@@ -110,16 +121,19 @@ impl Progress for Silent {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Cancelled(pub String);
 
-/// Stage names and the fraction of a typical run done when each starts.
-pub const STAGES: [(&str, f64); 5] = [
+/// Stage names and the fraction of a typical run done when each starts (motion method,
+/// then the vanishing method's own stages).
+pub const STAGES: [(&str, f64); 7] = [
     ("detection", 0.0),
     ("trajectories", 0.05),
     ("initialisation", 0.4),
     ("rig_bundle_adjustment", 0.5),
     ("diagnostics", 0.9),
+    ("camera_target_poses", 0.05),
+    ("extrinsics", 0.9),
 ];
 
-fn enter(progress: &dyn Progress, stage: &str) -> Result<(), Cancelled> {
+pub(crate) fn enter(progress: &dyn Progress, stage: &str) -> Result<(), Cancelled> {
     let fraction = STAGES
         .iter()
         .find(|(s, _)| *s == stage)
@@ -137,9 +151,16 @@ pub fn undetected_images(session: &Session) -> Vec<String> {
     let mut out = Vec::new();
     for (fi, f) in session.manifest.frames.iter().enumerate() {
         for cam in f.images.keys() {
-            if f.observations.get(cam).is_none_or(|o| o.is_empty()) {
+            let detected = f.observations.get(cam).is_some_and(|o| !o.is_empty())
+                || f.lines.get(cam).is_some_and(|l| !l.is_empty());
+            if !detected {
                 out.push(format!("frames[{fi}].images.{cam}"));
             }
+        }
+    }
+    for (ri, r) in session.manifest.ring.iter().enumerate() {
+        if r.image.is_some() && r.lines.is_empty() {
+            out.push(format!("ring[{ri}].image"));
         }
     }
     out
@@ -188,15 +209,7 @@ pub fn calibrate_with(
     }
     let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
     if session.manifest.method == Method::Vanishing {
-        return Ok(failed(
-            session,
-            vec![reason(
-                "method_not_supported",
-                "the vanishing method is not available in this build yet; use method \"motion\"",
-                None,
-            )],
-            stages,
-        ));
+        return vanishing::calibrate(session, opts, progress);
     }
     if session.cameras.len() < 2 {
         return Ok(failed(
@@ -576,6 +589,7 @@ pub fn calibrate_with(
             resolved_by,
             recommendations,
         }),
+        vanishing: None,
         initialisation,
         solver: Some(SolverReport {
             iterations: ba.summary.iterations,

@@ -1,0 +1,370 @@
+//! Validation of the vanishing method's inputs: line targets, rig cameras' line points,
+//! the auxiliary camera and its ring of views. Structural problems are input errors
+//! naming the field; geometric ones (a target no auxiliary view links, a broken ring)
+//! are left to the solver, which explains them in the result document.
+
+use super::raw::*;
+use super::validate::{camera_from_spec, NamedCamera};
+use super::InputError;
+use crate::geometry::{Camera, Vec2};
+use std::collections::{BTreeMap, HashMap};
+
+/// Points per line above which a session is refused (a 65 536 px line sampled twice per pixel).
+pub const MAX_POINTS_PER_LINE: usize = 131_072;
+/// Ring views above which a session is refused.
+pub const MAX_RING_VIEWS: usize = 10_000;
+
+/// Wu's line target: outer length L1 and spacing L2 (metres).
+#[derive(Clone, Debug)]
+pub struct LineTargetDef {
+    pub id: String,
+    pub length: f64,
+    pub spacing: f64,
+}
+
+/// Points measured on feature line `line` (0-based: `l1` is 0) of target `target`
+/// (an index into [`VanishingInput::targets`]), in raw pixels.
+#[derive(Clone, Debug)]
+pub struct LineObs {
+    pub target: usize,
+    pub line: usize,
+    pub points: Vec<Vec2>,
+}
+
+/// One auxiliary image of neighbouring targets.
+#[derive(Clone, Debug)]
+pub struct RingView {
+    pub index: i64,
+    pub targets: [usize; 2],
+    pub lines: Vec<LineObs>,
+}
+
+/// The vanishing method's validated input.
+#[derive(Clone, Debug)]
+pub struct VanishingInput {
+    pub targets: Vec<LineTargetDef>,
+    pub auxiliary: NamedCamera,
+    /// Per rig camera (indexed like `Session::cameras`): its line observations.
+    pub rig: Vec<Vec<LineObs>>,
+    pub ring: Vec<RingView>,
+}
+
+fn line_obs(
+    spec: &LineSpec,
+    at: &str,
+    camera: &Camera,
+    cam_name: &str,
+    target_index: &HashMap<&str, usize>,
+) -> Result<LineObs, InputError> {
+    let target = *target_index.get(spec.target.as_str()).ok_or_else(|| {
+        InputError::new(
+            format!("{at}.target"),
+            format!(
+                "the id of a line_target in targets[], got {:?}",
+                spec.target
+            ),
+        )
+    })?;
+    if !(1..=6).contains(&spec.line) {
+        return Err(InputError::new(
+            format!("{at}.line"),
+            format!("a feature line number 1..6, got {}", spec.line),
+        ));
+    }
+    if spec.points.len() > MAX_POINTS_PER_LINE {
+        return Err(InputError::new(
+            format!("{at}.points"),
+            format!(
+                "at most {MAX_POINTS_PER_LINE} points per line, got {}",
+                spec.points.len()
+            ),
+        ));
+    }
+    let mut points = Vec::with_capacity(spec.points.len());
+    for (k, p) in spec.points.iter().enumerate() {
+        let uv = Vec2::new(p[0], p[1]);
+        if !(p[0].is_finite() && p[1].is_finite() && camera.in_image(&uv)) {
+            return Err(InputError::new(
+                format!("{at}.points[{k}]"),
+                format!(
+                    "a finite pixel inside the {}×{} image of camera {cam_name}, got [{}, {}]",
+                    camera.width, camera.height, p[0], p[1]
+                ),
+            ));
+        }
+        points.push(uv);
+    }
+    Ok(LineObs {
+        target,
+        line: spec.line as usize - 1,
+        points,
+    })
+}
+
+/// Every (target, line) once per image.
+fn unique_lines(obs: &[LineObs], at: &str) -> Result<(), InputError> {
+    let mut seen = BTreeMap::new();
+    for (i, o) in obs.iter().enumerate() {
+        if let Some(prev) = seen.insert((o.target, o.line), i) {
+            return Err(InputError::new(
+                format!("{at}[{i}].line"),
+                format!(
+                    "each feature line of a target once per image; line {} repeats {at}[{prev}]",
+                    o.line + 1
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
+/// Validate the vanishing-method parts of a manifest. `cameras` are the validated rig cameras.
+pub fn validate_vanishing(
+    m: &SessionManifest,
+    cameras: &[NamedCamera],
+) -> Result<VanishingInput, InputError> {
+    let mut targets = Vec::new();
+    let mut target_index = HashMap::new();
+    for (i, t) in m.targets.iter().enumerate() {
+        match t {
+            TargetSpec::LineTarget {
+                id,
+                length,
+                spacing,
+            } => {
+                if spacing >= length {
+                    return Err(InputError::new(
+                        format!("targets[{i}].spacing"),
+                        format!(
+                            "a spacing L2 smaller than the length L1 = {length} m, got {spacing}"
+                        ),
+                    ));
+                }
+                target_index.insert(id.as_str(), targets.len());
+                targets.push(LineTargetDef {
+                    id: id.clone(),
+                    length: *length,
+                    spacing: *spacing,
+                });
+            }
+            _ => {
+                return Err(InputError::new(
+                    format!("targets[{i}].type"),
+                    "line_target (the vanishing method uses only line targets)",
+                ))
+            }
+        }
+    }
+    if targets.len() < 2 {
+        return Err(InputError::new(
+            "targets",
+            "at least two line_target entries (one per rig camera)",
+        ));
+    }
+    let aux_spec = m.auxiliary_camera.as_ref().ok_or_else(|| {
+        InputError::new(
+            "auxiliary_camera",
+            "the auxiliary camera (id, model, size, intrinsics) for method vanishing",
+        )
+    })?;
+    let auxiliary = NamedCamera {
+        id: aux_spec.id.clone(),
+        camera: camera_from_spec(aux_spec, "auxiliary_camera")?,
+    };
+    if aux_spec.id.is_empty() || cameras.iter().any(|c| c.id == aux_spec.id) {
+        return Err(InputError::new(
+            "auxiliary_camera.id",
+            format!(
+                "a non-empty id different from the rig cameras', got {:?}",
+                aux_spec.id
+            ),
+        ));
+    }
+    if m.frames.len() > 1 {
+        return Err(InputError::new(
+            "frames",
+            format!(
+                "one frame (the rig is static in the vanishing method), got {}",
+                m.frames.len()
+            ),
+        ));
+    }
+    let mut rig = vec![Vec::new(); cameras.len()];
+    if let Some(f) = m.frames.first() {
+        if !f.observations.is_empty() {
+            return Err(InputError::new(
+                "frames[0].observations",
+                "no point observations in a vanishing session (give frames[0].lines)",
+            ));
+        }
+        for (cam, specs) in &f.lines {
+            let ci = cameras.iter().position(|c| &c.id == cam).ok_or_else(|| {
+                InputError::new(
+                    format!("frames[0].lines.{cam}"),
+                    "a camera id declared in cameras[]",
+                )
+            })?;
+            let mut obs = Vec::new();
+            for (i, s) in specs.iter().enumerate() {
+                let at = format!("frames[0].lines.{cam}[{i}]");
+                obs.push(line_obs(s, &at, &cameras[ci].camera, cam, &target_index)?);
+            }
+            unique_lines(&obs, &format!("frames[0].lines.{cam}"))?;
+            if let Some(o) = obs.iter().position(|o| o.target != obs[0].target) {
+                return Err(InputError::new(
+                    format!("frames[0].lines.{cam}[{o}].target"),
+                    format!(
+                        "the one target camera {cam} sees ({}), got {:?}",
+                        targets[obs[0].target].id, targets[obs[o].target].id
+                    ),
+                ));
+            }
+            rig[ci] = obs;
+        }
+    }
+    if m.ring.len() > MAX_RING_VIEWS {
+        return Err(InputError::new(
+            "ring",
+            format!("at most {MAX_RING_VIEWS} views, got {}", m.ring.len()),
+        ));
+    }
+    let mut ring = Vec::new();
+    let mut indices = std::collections::HashSet::new();
+    for (ri, r) in m.ring.iter().enumerate() {
+        let at = format!("ring[{ri}]");
+        if !indices.insert(r.index) {
+            return Err(InputError::new(
+                format!("{at}.index"),
+                format!("an index unique among ring views, {} repeats", r.index),
+            ));
+        }
+        if r.targets.len() != 2 || r.targets[0] == r.targets[1] {
+            return Err(InputError::new(
+                format!("{at}.targets"),
+                format!(
+                    "the ids of the two different line targets in view, got {:?}",
+                    r.targets
+                ),
+            ));
+        }
+        let mut pair = [0usize; 2];
+        for (k, t) in r.targets.iter().enumerate() {
+            pair[k] = *target_index.get(t.as_str()).ok_or_else(|| {
+                InputError::new(
+                    format!("{at}.targets[{k}]"),
+                    format!("the id of a line_target in targets[], got {t:?}"),
+                )
+            })?;
+        }
+        if let Some(path) = &r.image {
+            super::validate::check_image_path(path, &format!("{at}.image"))?;
+        }
+        let mut lines = Vec::new();
+        for (i, s) in r.lines.iter().enumerate() {
+            let li = format!("{at}.lines[{i}]");
+            let o = line_obs(s, &li, &auxiliary.camera, &auxiliary.id, &target_index)?;
+            if !pair.contains(&o.target) {
+                return Err(InputError::new(
+                    format!("{li}.target"),
+                    format!(
+                        "one of the view's targets {:?}, got {:?}",
+                        r.targets, s.target
+                    ),
+                ));
+            }
+            lines.push(o);
+        }
+        unique_lines(&lines, &format!("{at}.lines"))?;
+        ring.push(RingView {
+            index: r.index,
+            targets: pair,
+            lines,
+        });
+    }
+    Ok(VanishingInput {
+        targets,
+        auxiliary,
+        rig,
+        ring,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use crate::session::parse_session;
+    use serde_json::{json, Value};
+
+    fn ring() -> Value {
+        let cam = |id: &str| json!({"id": id, "model": "pinhole", "width": 1024, "height": 768, "intrinsics": {"fx": 800, "fy": 800, "cx": 512, "cy": 384}});
+        let line = |t: &str, l: u8| json!({"target": t, "line": l, "points": [[100.0, 100.0], [200.0, 110.0], [300.0, 120.0]]});
+        json!({
+            "method": "vanishing",
+            "reference_camera": "c1",
+            "cameras": [cam("c1"), cam("c2")],
+            "auxiliary_camera": cam("aux"),
+            "targets": [
+                {"id": "t1", "type": "line_target", "length": 0.5, "spacing": 0.2},
+                {"id": "t2", "type": "line_target", "length": 0.5, "spacing": 0.2}
+            ],
+            "frames": [{"index": 0, "lines": {"c1": [line("t1", 1)], "c2": [line("t2", 1)]}}],
+            "ring": [{"index": 0, "targets": ["t1", "t2"], "lines": [line("t1", 1), line("t2", 6)]}]
+        })
+    }
+
+    fn field(v: Value) -> String {
+        parse_session(v.to_string().as_bytes()).unwrap_err().field
+    }
+
+    #[test]
+    fn a_ring_session_parses_and_every_error_names_its_field() {
+        let s = parse_session(ring().to_string().as_bytes()).unwrap();
+        let v = s.vanishing.unwrap();
+        assert_eq!(v.rig[1][0].target, 1);
+        assert_eq!(v.ring[0].lines[1].line, 5);
+
+        let mut m = ring();
+        m.as_object_mut().unwrap().remove("auxiliary_camera");
+        assert_eq!(field(m), "auxiliary_camera");
+        let mut m = ring();
+        m["auxiliary_camera"]["id"] = json!("c2");
+        assert_eq!(field(m), "auxiliary_camera.id");
+        let mut m = ring();
+        m["ring"][0]["targets"] = json!(["t1"]);
+        assert_eq!(field(m), "ring[0].targets");
+        let mut m = ring();
+        m["ring"][0]["targets"][1] = json!("t9");
+        assert_eq!(field(m), "ring[0].targets[1]");
+        let mut m = ring();
+        m["ring"][0]["lines"][1]["line"] = json!(7);
+        assert_eq!(field(m), "ring[0].lines[1].line");
+        let mut m = ring();
+        m["ring"][0]["lines"][1]["target"] = json!("t1");
+        m["ring"][0]["lines"][1]["line"] = json!(1);
+        assert_eq!(field(m), "ring[0].lines[1].line");
+        let mut m = ring();
+        m["frames"][0]["lines"]["c1"][0]["points"][2] = json!([2000.0, 5.0]);
+        assert_eq!(field(m), "frames[0].lines.c1[0].points[2]");
+        let mut m = ring();
+        m["frames"][0]["lines"]["c1"]
+            .as_array_mut()
+            .unwrap()
+            .push(json!({"target": "t2", "line": 2, "points": []}));
+        assert_eq!(field(m), "frames[0].lines.c1[1].target");
+        let mut m = ring();
+        m["frames"][0]["lines"]["c9"] = json!([]);
+        assert_eq!(field(m), "frames[0].lines.c9");
+        let mut m = ring();
+        m["targets"][1]["spacing"] = json!(0.6);
+        assert_eq!(field(m), "targets[1].spacing");
+        let mut m = ring();
+        m["targets"][1] = json!({"id": "t2", "type": "apriltags", "tag_size": 0.1});
+        assert_eq!(field(m), "targets[1].type");
+        let mut m = ring();
+        m["ring"][0]["image"] = json!("../etc/passwd");
+        assert_eq!(field(m), "ring[0].image");
+        // Ring parts in a motion session are refused, not ignored.
+        let mut m = ring();
+        m["method"] = json!("motion");
+        assert_eq!(field(m), "auxiliary_camera");
+    }
+}

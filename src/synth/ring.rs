@@ -1,0 +1,276 @@
+//! Synthetic vanishing-method sessions: the ring of Wu et al. §5.1 (Table 2), eight
+//! cameras 150 mm above the ground looking outwards, each with a line target on the
+//! ground in front of it, and an auxiliary camera photographing each neighbouring pair
+//! from 40° above the ground (the best pitch of their §4.1).
+//!
+//! Frames (the paper's ECF): `y` down, the ground is `y = 0`; camera `k` sits at Table 2's
+//! `(x, y, z)` with yaw about `y` (0° looks along `+z`, 90° along `+x`). As in the paper,
+//! every feature line is sampled with one point per pixel of its image length and each
+//! point gets Gaussian noise of `noise_px` on both coordinates.
+
+use super::Truth;
+use crate::calib::vanishing::target::{LineTarget, LINES};
+use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use crate::session::{
+    CameraSpec, FrameSpec, Intrinsics, LineSpec, RingSpec, SessionManifest, TargetSpec,
+};
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+use std::collections::BTreeMap;
+
+/// Table 2: camera positions (mm) and yaw (deg); pitch and roll are 0.
+pub const TABLE2: [(f64, f64, f64, f64); 8] = [
+    (100.0, -150.0, 0.0, 28.0),
+    (600.0, -150.0, -400.0, 64.0),
+    (600.0, -150.0, -500.0, 125.0),
+    (200.0, -150.0, -1000.0, 158.0),
+    (-200.0, -150.0, -1000.0, 202.0),
+    (-600.0, -150.0, -500.0, 235.0),
+    (-600.0, -150.0, -400.0, 296.0),
+    (-100.0, -150.0, 0.0, 332.0),
+];
+/// Wu §5.1: L1 = 500 mm, L2 = 200 mm.
+pub const TARGET: LineTarget = LineTarget {
+    length: 0.5,
+    spacing: 0.2,
+};
+/// Ground distance from a camera to its target's nearest corner (m).
+const TARGET_DISTANCE: f64 = 0.35;
+/// The auxiliary camera: pitch below the horizon and distance to the pair's midpoint.
+const AUX_PITCH_DEG: f64 = 40.0;
+const AUX_DISTANCE: f64 = 1.0;
+
+pub fn rig_camera() -> Camera {
+    Camera::pinhole(796.44, 796.44, 512.0, 384.0, 1024, 768)
+}
+
+pub fn aux_camera() -> Camera {
+    Camera::pinhole(512.0, 512.0, 512.0, 384.0, 1024, 768)
+}
+
+fn spec(id: &str, c: &Camera) -> CameraSpec {
+    CameraSpec {
+        id: id.into(),
+        model: c.model.name().into(),
+        width: c.width,
+        height: c.height,
+        intrinsics: Intrinsics {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+        },
+        distortion: c.model.coefficients(),
+    }
+}
+
+/// A camera at `position` looking along `forward` (unit), its `x` axis horizontal.
+fn looking(position: Vec3, forward: Vec3) -> Pose {
+    let z = forward.normalize();
+    let x = Vec3::y().cross(&z).normalize();
+    let y = z.cross(&x);
+    Pose::new(nalgebra::Matrix3::from_columns(&[x, y, z]), position)
+}
+
+/// The scene in the ECF: `ecf_from_cam` per rig camera, `ecf_from_target` per target,
+/// `ecf_from_aux` per neighbouring pair `(k, k+1 mod 8)`.
+pub struct RingScene {
+    pub ecf_from_cam: Vec<Pose>,
+    pub ecf_from_target: Vec<Pose>,
+    pub ecf_from_aux: Vec<Pose>,
+}
+
+pub fn table2_scene() -> RingScene {
+    let ecf_from_cam: Vec<Pose> = TABLE2
+        .iter()
+        .map(|&(x, y, z, yaw)| {
+            Pose::new(
+                so3::exp(&Vec3::new(0.0, yaw.to_radians(), 0.0)),
+                Vec3::new(x, y, z) * 1e-3,
+            )
+        })
+        .collect();
+    let ecf_from_target: Vec<Pose> = ecf_from_cam
+        .iter()
+        .map(|c| {
+            // Diagonal (the symmetry axis) pointing back at the camera, P1 nearest.
+            let ahead = Vec3::new(c.rot[(0, 2)], 0.0, c.rot[(2, 2)]).normalize();
+            let p1 = Vec3::new(c.trans.x, 0.0, c.trans.z) + ahead * TARGET_DISTANCE;
+            let quarter = |a: f64| so3::exp(&Vec3::new(0.0, a.to_radians(), 0.0)) * ahead;
+            let (x, z) = (quarter(45.0), quarter(-45.0));
+            let y = z.cross(&x);
+            Pose::new(nalgebra::Matrix3::from_columns(&[x, y, z]), p1)
+        })
+        .collect();
+    let centre: Vec3 = ecf_from_cam.iter().map(|c| c.trans).sum::<Vec3>() / 8.0;
+    let target_centre = |t: &Pose| {
+        let c = TARGET.corners();
+        t.apply(&(c.iter().sum::<Vec3>() / LINES as f64))
+    };
+    let ecf_from_aux = (0..8)
+        .map(|k| {
+            let mid = (target_centre(&ecf_from_target[k])
+                + target_centre(&ecf_from_target[(k + 1) % 8]))
+                / 2.0;
+            let out = Vec3::new(mid.x - centre.x, 0.0, mid.z - centre.z).normalize();
+            let p = AUX_PITCH_DEG.to_radians();
+            let forward = -out * p.cos() + Vec3::y() * p.sin();
+            looking(mid - forward * AUX_DISTANCE, forward)
+        })
+        .collect();
+    RingScene {
+        ecf_from_cam,
+        ecf_from_target,
+        ecf_from_aux,
+    }
+}
+
+/// Points along every feature line of `target` as `camera` at `cam_from_target` sees them:
+/// one per pixel of image length, noisy, those outside the image (8 px margin) dropped.
+pub fn sample_lines(
+    camera: &Camera,
+    cam_from_target: &Pose,
+    target: &LineTarget,
+    target_id: &str,
+    noise_px: f64,
+    rng: &mut impl Rng,
+) -> Vec<LineSpec> {
+    let normal = Normal::new(0.0, noise_px.max(1e-300)).expect("finite σ");
+    let margin = 8.0;
+    (0..LINES)
+        .map(|m| {
+            let (a, b) = target.segment(m);
+            let proj = |x: Vec3| camera.project(&cam_from_target.apply(&x));
+            let n = match (proj(a), proj(b)) {
+                (Some(pa), Some(pb)) => ((pa - pb).norm().round() as usize).max(2),
+                _ => 0,
+            };
+            let points = (0..n)
+                .filter_map(|i| {
+                    let s = (i as f64 + 0.5) / n as f64;
+                    let p = proj(a + (b - a) * s)?;
+                    let p = if noise_px > 0.0 {
+                        p + Vec2::new(normal.sample(rng), normal.sample(rng))
+                    } else {
+                        p
+                    };
+                    let inside = p.x >= margin
+                        && p.y >= margin
+                        && p.x <= camera.width as f64 - 1.0 - margin
+                        && p.y <= camera.height as f64 - 1.0 - margin;
+                    inside.then_some([p.x, p.y])
+                })
+                .collect();
+            LineSpec {
+                target: target_id.into(),
+                line: m as u8 + 1,
+                points,
+            }
+        })
+        .collect()
+}
+
+/// The `wu-table2` session and its truth.
+pub fn generate(rng: &mut impl Rng, noise_px: f64) -> (SessionManifest, Truth) {
+    generate_with(rng, noise_px, &rig_camera(), &aux_camera(), &table2_scene())
+}
+
+/// A ring session of `scene` seen through the given rig and auxiliary cameras (any model:
+/// line points are sampled through the distortion, as a lens images them).
+pub fn generate_with(
+    rng: &mut impl Rng,
+    noise_px: f64,
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+) -> (SessionManifest, Truth) {
+    let cam_ids: Vec<String> = (1..=8).map(|k| format!("cam{k}")).collect();
+    let target_ids: Vec<String> = (1..=8).map(|k| format!("t{k}")).collect();
+    let mut lines = BTreeMap::new();
+    for k in 0..8 {
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+        lines.insert(
+            cam_ids[k].clone(),
+            sample_lines(
+                rig,
+                &cam_from_target,
+                &TARGET,
+                &target_ids[k],
+                noise_px,
+                rng,
+            ),
+        );
+    }
+    let ring = (0..8)
+        .map(|k| {
+            let j = (k + 1) % 8;
+            let mut l = Vec::new();
+            for t in [k, j] {
+                let aux_from_target = scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[t];
+                l.extend(sample_lines(
+                    aux,
+                    &aux_from_target,
+                    &TARGET,
+                    &target_ids[t],
+                    noise_px,
+                    rng,
+                ));
+            }
+            RingSpec {
+                index: k as i64,
+                targets: vec![target_ids[k].clone(), target_ids[j].clone()],
+                image: None,
+                lines: l,
+            }
+        })
+        .collect();
+    let manifest = SessionManifest {
+        version: 1,
+        vehicle_id: Some("synth-wu-table2".into()),
+        method: crate::session::Method::Vanishing,
+        reference_camera: cam_ids[0].clone(),
+        cameras: cam_ids.iter().map(|id| spec(id, rig)).collect(),
+        targets: target_ids
+            .iter()
+            .map(|id| TargetSpec::LineTarget {
+                id: id.clone(),
+                length: TARGET.length,
+                spacing: TARGET.spacing,
+            })
+            .collect(),
+        scale: vec![],
+        frames: vec![FrameSpec {
+            index: 0,
+            timestamp: None,
+            images: BTreeMap::new(),
+            observations: BTreeMap::new(),
+            lines,
+        }],
+        priors: None,
+        auxiliary_camera: Some(spec("aux", aux)),
+        ring,
+    };
+    let ref_from_ecf = scene.ecf_from_cam[0].inverse();
+    let truth = Truth {
+        preset: "wu-table2".into(),
+        reference_camera: cam_ids[0].clone(),
+        ref_from_cam: cam_ids
+            .iter()
+            .zip(&scene.ecf_from_cam)
+            .map(|(id, p)| (id.clone(), ref_from_ecf * *p))
+            .collect(),
+        world_from_rig: vec![scene.ecf_from_cam[0]],
+        motion: "static".into(),
+        points: target_ids
+            .iter()
+            .zip(&scene.ecf_from_target)
+            .flat_map(|(id, t)| {
+                TARGET.corners().into_iter().enumerate().map(move |(m, c)| {
+                    let p = t.apply(&c);
+                    (format!("line:{id}:{}", m + 1), [p.x, p.y, p.z])
+                })
+            })
+            .collect(),
+    };
+    (manifest, truth)
+}
