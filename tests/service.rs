@@ -812,3 +812,82 @@ async fn cancelling_a_running_job_stops_it_between_stages() {
     )
     .await;
 }
+
+#[tokio::test]
+async fn a_vanishing_ring_calibrates_through_the_service_and_ring_images_are_slots() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+
+    // Detections (line points): checked at once, then solved.
+    let (m, truth) = rigcal::synth::generate("wu-table2", 11, 0.3).unwrap();
+    let sess = create_session(&c, &s, &serde_json::to_value(&m).unwrap()).await;
+    assert_eq!(sess["method"], "vanishing");
+    assert_eq!(sess["capture_check"]["verdict"], "ok", "{sess}");
+    assert_eq!(sess["capture_check"]["ring_closed"], true);
+    let sid = sess["id"].as_str().unwrap();
+    let job = submit(&c, &s, sid).await;
+    let id = job["id"].as_str().unwrap();
+    let done = wait_job(&c, &s, id, MIN).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let result: Value = c
+        .get(s.url(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(result["method"], "vanishing");
+    assert_eq!(result["vanishing"]["ring_closed"], true);
+    assert_eq!(result["vanishing"]["cameras"][4]["chain_transforms"], 4);
+    for e in result["extrinsics"].as_array().unwrap() {
+        let cam = e["camera"].as_str().unwrap();
+        let t = truth.ref_from_cam[cam].trans;
+        let got: Vec<f64> = e["translation"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let d = ((got[0] - t.x).powi(2) + (got[1] - t.y).powi(2) + (got[2] - t.z).powi(2)).sqrt();
+        assert!(d < 3e-3, "{cam}: {d} m");
+    }
+    let kalibr = c
+        .get(s.url(&format!("/v1/jobs/{id}/result?format=kalibr")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(kalibr.status(), 200);
+
+    // A ring of images: the auxiliary camera's images are slots by ring index, checked
+    // against the auxiliary camera's size; without detections the job says so.
+    let mut m2 = m.clone();
+    m2.ring[0].lines.clear();
+    m2.ring[0].image = Some("aux/ring0.png".into());
+    let sess = create_session(&c, &s, &serde_json::to_value(&m2).unwrap()).await;
+    let missing = sess["images_missing"].as_array().unwrap();
+    assert_eq!(missing.len(), 1, "{sess}");
+    assert_eq!(missing[0]["camera"], "aux");
+    assert_eq!(missing[0]["field"], "ring[0].image");
+    let sid2 = sess["id"].as_str().unwrap();
+    let put = |bytes: Vec<u8>| {
+        c.put(s.url(&format!("/v1/sessions/{sid2}/images/aux/0")))
+            .header("content-type", "image/png")
+            .body(bytes)
+            .send()
+    };
+    expect_problem(
+        put(png(640, 480, 1)).await.unwrap(),
+        422,
+        "image-size-mismatch",
+    )
+    .await;
+    let ok = put(png(1024, 768, 1)).await.unwrap();
+    assert_eq!(ok.status(), 200, "{:?}", ok.text().await);
+    let job = submit(&c, &s, sid2).await;
+    let done = wait_job(&c, &s, job["id"].as_str().unwrap(), MIN).await;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "detection_unavailable", "{done}");
+}

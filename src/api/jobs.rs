@@ -97,24 +97,18 @@ pub async fn create(
         })?;
     let parsed = parse_session(session.manifest.as_bytes()).map_err(ApiError::internal)?;
     let have = state.store.images(&session.id).await?;
-    let missing: Vec<String> = undetected_images(&parsed)
+    // Images the manifest names, without detections and not uploaded yet.
+    let undetected: std::collections::HashSet<String> =
+        undetected_images(&parsed).into_iter().collect();
+    let missing: Vec<String> = super::sessions::slots(&parsed)
         .into_iter()
-        .filter(|path| {
-            // `frames[i].images.cam` without an uploaded image.
-            let (fi, cam) = match path
-                .strip_prefix("frames[")
-                .and_then(|r| r.split_once("].images."))
-            {
-                Some((fi, cam)) => (fi.parse::<usize>().ok(), cam.to_string()),
-                None => (None, String::new()),
-            };
-            let frame = fi
-                .and_then(|i| parsed.manifest.frames.get(i))
-                .map(|f| f.index);
-            !have
-                .iter()
-                .any(|h| Some(h.frame) == frame && h.camera == cam)
+        .filter(|slot| {
+            undetected.contains(&slot.field)
+                && !have
+                    .iter()
+                    .any(|h| h.frame == slot.frame && h.camera == slot.camera)
         })
+        .map(|slot| slot.field)
         .collect();
     if !missing.is_empty() {
         return Err(ApiError::new(

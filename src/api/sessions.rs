@@ -21,23 +21,50 @@ use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Read;
 
-/// One image slot the manifest announces: (camera, frame index) and its path.
+/// One image slot the manifest announces: (camera, frame index) and its path. Ring
+/// images of the vanishing method are slots of the auxiliary camera, by ring index.
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ImageSlot {
     pub camera: String,
     pub frame: i64,
     pub path: String,
+    /// The manifest field naming it (`frames[2].images.front`, `ring[3].image`).
+    pub field: String,
+    /// The size the camera's images must have.
+    #[serde(skip)]
+    pub size: (u32, u32),
 }
 
-fn slots(session: &Session) -> Vec<ImageSlot> {
+pub(super) fn slots(session: &Session) -> Vec<ImageSlot> {
     let mut out = Vec::new();
-    for f in &session.manifest.frames {
+    for (fi, f) in session.manifest.frames.iter().enumerate() {
         for (cam, path) in &f.images {
+            let Some(c) = session
+                .camera_index(cam)
+                .map(|i| &session.cameras[i].camera)
+            else {
+                continue;
+            };
             out.push(ImageSlot {
                 camera: cam.clone(),
                 frame: f.index,
                 path: path.clone(),
+                field: format!("frames[{fi}].images.{cam}"),
+                size: (c.width, c.height),
             });
+        }
+    }
+    if let Some(v) = &session.vanishing {
+        for (ri, r) in session.manifest.ring.iter().enumerate() {
+            if let Some(path) = &r.image {
+                out.push(ImageSlot {
+                    camera: v.auxiliary.id.clone(),
+                    frame: r.index,
+                    path: path.clone(),
+                    field: format!("ring[{ri}].image"),
+                    size: (v.auxiliary.camera.width, v.auxiliary.camera.height),
+                });
+            }
         }
     }
     out
@@ -276,28 +303,13 @@ fn inspect_archive_images(
     max_pixels: u64,
 ) -> Result<Vec<(ImageSlot, ImageMeta, Vec<u8>)>, ApiError> {
     let mut out = Vec::new();
-    for (fi, f) in session.manifest.frames.iter().enumerate() {
-        for (cam, path) in &f.images {
-            let Some(bytes) = files.get(&format!("{prefix}{path}")) else {
-                continue;
-            };
-            let c = session
-                .camera_index(cam)
-                .map(|i| &session.cameras[i].camera)
-                .ok_or_else(|| ApiError::internal("validated camera missing"))?;
-            let field = format!("frames[{fi}].images.{cam}");
-            let meta = imageio::inspect(bytes, Some((c.width, c.height)), max_pixels)
-                .map_err(|e| image_error(e, &field))?;
-            out.push((
-                ImageSlot {
-                    camera: cam.clone(),
-                    frame: f.index,
-                    path: path.clone(),
-                },
-                meta,
-                bytes.clone(),
-            ));
-        }
+    for slot in slots(session) {
+        let Some(bytes) = files.get(&format!("{prefix}{}", slot.path)) else {
+            continue;
+        };
+        let meta = imageio::inspect(bytes, Some(slot.size), max_pixels)
+            .map_err(|e| image_error(e, &slot.field))?;
+        out.push((slot, meta, bytes.clone()));
     }
     Ok(out)
 }
@@ -465,8 +477,12 @@ pub async fn put_image(
 ) -> Result<Json<Value>, ApiError> {
     let row = session_or_404(&state.store, &tenant, &id).await?;
     let session = stored_session(&row)?;
-    let Some(ci) = session.camera_index(&camera) else {
-        let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+    let all = slots(&session);
+    let mut ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+    if let Some(v) = &session.vanishing {
+        ids.push(v.auxiliary.id.as_str());
+    }
+    if !ids.contains(&camera.as_str()) {
         return Err(ApiError::new(
             StatusCode::NOT_FOUND,
             "unknown-camera",
@@ -476,7 +492,7 @@ pub async fn put_image(
             ),
         )
         .field("camera"));
-    };
+    }
     let frame_index: i64 = frame.parse().map_err(|_| {
         ApiError::new(
             StatusCode::NOT_FOUND,
@@ -485,7 +501,7 @@ pub async fn put_image(
         )
         .field("frame")
     })?;
-    let Some(slot) = slots(&session)
+    let Some(slot) = all
         .into_iter()
         .find(|s| s.camera == camera && s.frame == frame_index)
     else {
@@ -496,8 +512,7 @@ pub async fn put_image(
         )
         .field("frame"));
     };
-    let c = &session.cameras[ci].camera;
-    let (w, h, max_px) = (c.width, c.height, state.config.max_image_pixels);
+    let ((w, h), max_px) = (slot.size, state.config.max_image_pixels);
     let body2 = body.clone();
     let meta = tokio::task::spawn_blocking(move || imageio::inspect(&body2, Some((w, h)), max_px))
         .await

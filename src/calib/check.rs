@@ -47,6 +47,9 @@ pub struct CaptureCheck {
     /// Some camera sees a scene another camera saw (U-turn, loop).
     pub scene_permutation: bool,
     pub non_planar_motion: bool,
+    /// Vanishing method: whether the auxiliary views close the ring of targets.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub ring_closed: Option<bool>,
     pub seconds: f64,
 }
 
@@ -83,6 +86,9 @@ fn height_connected(session: &Session, traj: &Trajectories) -> BTreeSet<usize> {
 /// Run the capture check. Never panics on input; a session without usable detections
 /// gets `insufficient` with the reason.
 pub fn capture_check(session: &Session) -> CaptureCheck {
+    if session.vanishing.is_some() {
+        return ring_check(session);
+    }
     let t0 = Instant::now();
     let nc = session.cameras.len();
     let undetected = undetected_images(session);
@@ -299,6 +305,97 @@ pub fn capture_check(session: &Session) -> CaptureCheck {
         motion,
         scene_permutation: permutation,
         non_planar_motion: non_planar,
+        ring_closed: None,
+        seconds: t0.elapsed().as_secs_f64(),
+    }
+}
+
+/// The vanishing method's check: the solve itself takes a fraction of a second, so the
+/// check runs it and reports what it found (lines per camera, ring links and closure,
+/// ill-conditioned vanishing points) without the extrinsics.
+fn ring_check(session: &Session) -> CaptureCheck {
+    use super::vanishing::{solve, VanishingOptions};
+    let t0 = Instant::now();
+    let input = session.vanishing.as_ref().expect("vanishing session");
+    let (solution, findings) = solve(
+        session,
+        &VanishingOptions {
+            loss: crate::solver::Loss::Huber { scale: 2.0 },
+            max_iterations: 50,
+        },
+    );
+    let undetected = undetected_images(session);
+    let linked: BTreeSet<String> = solution
+        .iter()
+        .flat_map(|s| &s.cameras)
+        .map(|c| session.cameras[c.camera].id.clone())
+        .collect();
+    let cameras = session
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(c, cam)| {
+            let lines = &input.rig[c];
+            let dof = if linked.contains(&cam.id) { 3 } else { 0 };
+            CameraCoverage {
+                camera: cam.id.clone(),
+                frames_seen: usize::from(!lines.is_empty()),
+                points_seen: lines.iter().map(|l| l.points.len()).sum(),
+                observations: lines.len(),
+                images_without_detections: undetected
+                    .iter()
+                    .filter(|p| p.ends_with(&format!(".images.{}", cam.id)))
+                    .count(),
+                posed_frames: usize::from(dof > 0),
+                predicted_dof: ObservableDof {
+                    rotation: dof,
+                    translation: dof,
+                },
+            }
+        })
+        .collect();
+    let mut reasons: Vec<Reason> = findings
+        .iter()
+        .map(|f| reason(f.code, f.message.clone(), f.camera.as_deref()))
+        .collect();
+    let mut recommendations = Vec::new();
+    if !undetected.is_empty() {
+        reasons.push(reason(
+            "detections_pending",
+            format!("{} image(s) have no detections yet", undetected.len()),
+            None,
+        ));
+    }
+    let fatal = findings.iter().any(|f| f.fatal) || solution.is_none();
+    let closed = solution.as_ref().map(|s| s.closure.is_some());
+    if closed == Some(false) {
+        reasons.push(reason(
+            "ring_open",
+            "no auxiliary view closes the ring; the error of the chain will not be corrected"
+                .into(),
+            None,
+        ));
+        recommendations.push("Photograph the last neighbouring pair too (the one closing the ring) so the ring-closure optimisation can spread the chain's error.".into());
+    }
+    if fatal {
+        recommendations.push("Give every rig camera one image of its own target and photograph every neighbouring pair of targets with the auxiliary camera (about 40° above the target plane).".into());
+    }
+    let verdict = if fatal {
+        "insufficient"
+    } else if reasons.is_empty() {
+        "ok"
+    } else {
+        "degraded"
+    };
+    CaptureCheck {
+        verdict: verdict.into(),
+        reasons,
+        recommendations,
+        cameras,
+        motion: None,
+        scene_permutation: false,
+        non_planar_motion: false,
+        ring_closed: closed,
         seconds: t0.elapsed().as_secs_f64(),
     }
 }
@@ -313,6 +410,23 @@ mod tests {
         let (m, _) = synth::generate(preset, 7, 0.3).expect("preset");
         let s = parse_session(&serde_json::to_vec(&m).unwrap()).unwrap();
         capture_check(&s)
+    }
+
+    #[test]
+    fn a_ring_is_checked_and_a_missing_pair_is_named() {
+        let c = check("wu-table2");
+        assert_eq!(c.verdict, "ok", "{:?}", c.reasons);
+        assert_eq!(c.ring_closed, Some(true));
+        let (mut m, _) = synth::generate("wu-table2", 7, 0.3).unwrap();
+        m.ring.retain(|r| r.index != 3 && r.index != 4);
+        let s = parse_session(&serde_json::to_vec(&m).unwrap()).unwrap();
+        let c = capture_check(&s);
+        assert_eq!(c.verdict, "insufficient");
+        assert!(c
+            .reasons
+            .iter()
+            .any(|r| r.code == "target_not_linked" && r.camera.as_deref() == Some("cam5")));
+        assert_eq!(c.cameras[4].predicted_dof.rotation, 0);
     }
 
     #[test]
