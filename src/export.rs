@@ -30,14 +30,7 @@ impl std::str::FromStr for Format {
 
 fn pose_of(doc: &ResultDocument, cam: &str) -> Option<crate::geometry::Pose> {
     let e = doc.extrinsics.iter().find(|e| e.value.camera == cam)?;
-    let m = e.value.ref_from_cam;
-    let rot = nalgebra::Matrix3::new(
-        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
-    );
-    Some(crate::geometry::Pose::new(
-        rot,
-        nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
-    ))
+    Some(e.value.pose())
 }
 
 fn matrix_rows(p: &crate::geometry::Pose, indent: &str) -> String {

@@ -417,14 +417,7 @@ fn run() -> Result<i32> {
                 let Some(t) = truth.ref_from_cam.get(&e.value.camera) else {
                     continue;
                 };
-                let m = e.value.ref_from_cam;
-                let est = rigcal::geometry::Pose::new(
-                    nalgebra::Matrix3::new(
-                        m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1],
-                        m[2][2],
-                    ),
-                    nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
-                );
+                let est = e.value.pose();
                 let (dr, dt) = est.distance(t);
                 println!(
                     "{:<10} {:>14.4} {:>14.5}",

@@ -49,6 +49,32 @@ pub struct ExtrinsicValue {
     pub rpy_deg: [f64; 3],
 }
 
+impl ExtrinsicValue {
+    /// `ref_from_cam` as a pose (from the 4×4 matrix, the field every format is built on).
+    pub fn pose(&self) -> crate::geometry::Pose {
+        let m = self.ref_from_cam;
+        crate::geometry::Pose::new(
+            nalgebra::Matrix3::new(
+                m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
+            ),
+            nalgebra::Vector3::new(m[0][3], m[1][3], m[2][3]),
+        )
+    }
+}
+
+impl Status {
+    /// The verdict from what was found: failed beats degraded beats succeeded.
+    pub fn from_findings(fatal: bool, degrading: bool) -> Status {
+        if fatal {
+            Status::Failed
+        } else if degrading {
+            Status::Degraded
+        } else {
+            Status::Succeeded
+        }
+    }
+}
+
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct Extrinsic {
     #[serde(flatten)]

@@ -5,20 +5,10 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rigcal::geometry::{so3, Camera, CameraModel, Pose, Vec3};
 use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::result::{ExtrinsicValue, ResultDocument, Status};
+use rigcal::result::{ResultDocument, Status};
 use rigcal::session::{parse_session, SessionManifest};
 use rigcal::synth::ring::{aux_camera, generate_with, rig_camera, table2_scene, RingScene};
 use rigcal::synth::Truth;
-
-fn pose_of(v: &ExtrinsicValue) -> Pose {
-    let m = v.ref_from_cam;
-    Pose::new(
-        nalgebra::Matrix3::new(
-            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
-        ),
-        Vec3::new(m[0][3], m[1][3], m[2][3]),
-    )
-}
 
 fn session(
     seed: u64,
@@ -47,8 +37,8 @@ fn errors(doc: &ResultDocument, truth: &Truth) -> Vec<(String, f64, f64, f64, f6
                 .iter()
                 .find(|c| c.camera == e.value.camera)
                 .unwrap();
-            let (gr, gt) = pose_of(&e.value).distance(t);
-            let (cr, ct) = pose_of(&c.chainwise).distance(t);
+            let (gr, gt) = e.value.pose().distance(t);
+            let (cr, ct) = c.chainwise.pose().distance(t);
             (e.value.camera.clone(), gr, gt, cr, ct)
         })
         .collect()
@@ -126,7 +116,7 @@ fn with_noise_the_global_result_beats_the_chain_far_from_the_reference() {
         }
         for e in doc.extrinsics.iter().skip(1) {
             let cov = nalgebra::Matrix6::from_fn(|i, j| e.covariance.unwrap()[i][j]);
-            let t = pose_of(&e.value);
+            let t = e.value.pose();
             let truth_pose = truth.ref_from_cam[&e.value.camera];
             let dt = t.trans - truth_pose.trans;
             let dphi = so3::log(&(t.rot * truth_pose.rot.transpose()));

@@ -28,16 +28,6 @@ pub struct AccuracyRow {
     pub nees: f64,
 }
 
-pub(crate) fn pose_of(v: &ExtrinsicValue) -> Pose {
-    let m = v.ref_from_cam;
-    Pose::new(
-        nalgebra::Matrix3::new(
-            m[0][0], m[0][1], m[0][2], m[1][0], m[1][1], m[1][2], m[2][0], m[2][1], m[2][2],
-        ),
-        Vec3::new(m[0][3], m[1][3], m[2][3]),
-    )
-}
-
 /// Error `[dt; dφ]` of `est` against `truth` in the parametrisation of the covariance.
 pub(crate) fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
     let dt = est.trans - truth.trans;
@@ -145,8 +135,8 @@ pub fn accuracy(preset: &str, sigmas: &[f64], trials: usize, seed0: u64) -> Vec<
                     continue;
                 }
                 let t = truth.ref_from_cam[&cam.id];
-                let e = error6(&pose_of(&doc.extrinsics[c].value), &t);
-                let e0 = error6(&pose_of(&doc.initialisation[c]), &t);
+                let e = error6(&ExtrinsicValue::pose(&doc.extrinsics[c].value), &t);
+                let e0 = error6(&ExtrinsicValue::pose(&doc.initialisation[c]), &t);
                 it += e0.fixed_rows::<3>(0).norm_squared();
                 ir += e0.fixed_rows::<3>(3).norm_squared();
                 rt += e.fixed_rows::<3>(0).norm_squared();

@@ -3,7 +3,7 @@
 //! and of the globally optimised extrinsics (Wu Fig. 7-8), the mean reported 1-σ and the
 //! normalised estimation error squared (NEES, 6 is ideal) of the global covariance.
 
-use super::accuracy::{pose_of, synthetic_session};
+use super::accuracy::synthetic_session;
 use crate::geometry::Pose;
 use crate::pipeline::{calibrate, CalibOptions};
 use crate::result::Status;
@@ -71,8 +71,8 @@ pub fn ring_accuracy(noise: &[f64], trials: usize, seed: u64) -> Vec<RingRow> {
                     continue;
                 }
                 row.chain_transforms = c.chain_transforms;
-                let (cr, ct) = err(&pose_of(&c.chainwise), t);
-                let est = pose_of(&g.value);
+                let (cr, ct) = err(&c.chainwise.pose(), t);
+                let est = g.value.pose();
                 let (gr, gt) = err(&est, t);
                 row.chain_r_deg += cr * cr;
                 row.chain_t_mm += ct * ct;

@@ -552,13 +552,7 @@ pub fn calibrate_with(
         .iter()
         .any(|r| !matches!(r.code.as_str(), "outliers_removed"))
         || any_null;
-    let status = if fatal {
-        Status::Failed
-    } else if degrading {
-        Status::Degraded
-    } else {
-        Status::Succeeded
-    };
+    let status = Status::from_findings(fatal, degrading);
     stages.push(Stage {
         name: "diagnostics".into(),
         seconds: t.elapsed().as_secs_f64(),

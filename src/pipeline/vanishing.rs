@@ -193,16 +193,10 @@ pub(super) fn calibrate(
     // An open ring is accepted (the contract) but says so; an inconsistent ring
     // fails; any other finding degrades.
     let degrading = reasons.iter().any(|r| r.code != "ring_open");
-    let status = if reasons
+    let fatal = reasons
         .iter()
-        .any(|r| r.code == "inconsistent_ring" || r.code == "no_convergence")
-    {
-        Status::Failed
-    } else if degrading {
-        Status::Degraded
-    } else {
-        Status::Succeeded
-    };
+        .any(|r| r.code == "inconsistent_ring" || r.code == "no_convergence");
+    let status = Status::from_findings(fatal, degrading);
     stages.push(Stage {
         name: "extrinsics".into(),
         seconds: t.elapsed().as_secs_f64(),

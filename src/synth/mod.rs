@@ -317,6 +317,23 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
     })
 }
 
+/// A camera as a session manifest declares it.
+pub(crate) fn camera_spec(id: &str, c: &Camera) -> CameraSpec {
+    CameraSpec {
+        id: id.into(),
+        model: c.model.name().into(),
+        width: c.width,
+        height: c.height,
+        intrinsics: Intrinsics {
+            fx: c.fx,
+            fy: c.fy,
+            cx: c.cx,
+            cy: c.cy,
+        },
+        distortion: c.model.coefficients(),
+    }
+}
+
 /// Build a preset's session (observations with `noise_px` Gaussian pixel noise) and truth.
 pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManifest, Truth)> {
     if !(noise_px.is_finite() && noise_px >= 0.0) {
@@ -395,19 +412,7 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
     let cameras = sc
         .cameras
         .iter()
-        .map(|(name, c, _)| CameraSpec {
-            id: name.clone(),
-            model: c.model.name().into(),
-            width: c.width,
-            height: c.height,
-            intrinsics: Intrinsics {
-                fx: c.fx,
-                fy: c.fy,
-                cx: c.cx,
-                cy: c.cy,
-            },
-            distortion: c.model.coefficients(),
-        })
+        .map(|(name, c, _)| camera_spec(name, c))
         .collect();
     let reference = sc.cameras[0].0.clone();
     let manifest = SessionManifest {

@@ -8,12 +8,10 @@
 //! every feature line is sampled with one point per pixel of its image length and each
 //! point gets Gaussian noise of `noise_px` on both coordinates.
 
-use super::Truth;
+use super::{camera_spec, Truth};
 use crate::calib::vanishing::target::{LineTarget, LINES};
 use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
-use crate::session::{
-    CameraSpec, FrameSpec, Intrinsics, LineSpec, RingSpec, SessionManifest, TargetSpec,
-};
+use crate::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 use std::collections::BTreeMap;
@@ -46,22 +44,6 @@ pub fn rig_camera() -> Camera {
 
 pub fn aux_camera() -> Camera {
     Camera::pinhole(512.0, 512.0, 512.0, 384.0, 1024, 768)
-}
-
-fn spec(id: &str, c: &Camera) -> CameraSpec {
-    CameraSpec {
-        id: id.into(),
-        model: c.model.name().into(),
-        width: c.width,
-        height: c.height,
-        intrinsics: Intrinsics {
-            fx: c.fx,
-            fy: c.fy,
-            cx: c.cx,
-            cy: c.cy,
-        },
-        distortion: c.model.coefficients(),
-    }
 }
 
 /// A camera at `position` looking along `forward` (unit), its `x` axis horizontal.
@@ -229,7 +211,7 @@ pub fn generate_with(
         vehicle_id: Some("synth-wu-table2".into()),
         method: crate::session::Method::Vanishing,
         reference_camera: cam_ids[0].clone(),
-        cameras: cam_ids.iter().map(|id| spec(id, rig)).collect(),
+        cameras: cam_ids.iter().map(|id| camera_spec(id, rig)).collect(),
         targets: target_ids
             .iter()
             .map(|id| TargetSpec::LineTarget {
@@ -247,7 +229,7 @@ pub fn generate_with(
             lines,
         }],
         priors: None,
-        auxiliary_camera: Some(spec("aux", aux)),
+        auxiliary_camera: Some(camera_spec("aux", aux)),
         ring,
     };
     let ref_from_ecf = scene.ecf_from_cam[0].inverse();
