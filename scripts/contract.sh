@@ -8,7 +8,7 @@
 # geometry limits that no schema states, and those answer 422 with the field by design.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-BIN=${RIGCAL_BIN:-target/release/rigcal}
+BIN=${RIGCAL_BIN:-${CARGO_TARGET_DIR:-target}/release/rigcal}
 VENV=${RIGCAL_ST_VENV:-target/st-venv}
 if [ ! -x "$VENV/bin/st" ]; then
   python3 -m venv "$VENV"
