@@ -327,7 +327,9 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
 
     // 5. Camera extrinsics (eq. 26): refcam_from_cam = refcam_from_reftarget ·
     //    reftarget_from_target · target_from_cam.
-    let (_, ref_view) = rig[session.reference].clone().expect("checked above");
+    let Some((_, ref_view)) = rig[session.reference].clone() else {
+        return (None, findings);
+    };
     let ref_factor = Uncertain {
         pose: ref_view.cam_from_target,
         cov: ref_view.covariance.clone(),
@@ -354,7 +356,10 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
                 cov: propagate(&f, compose),
             }
         };
-        let chain_t = ch.ref_from_target[*t].clone().expect("linked");
+        // Unlinked targets were reported as fatal above; skip rather than panic.
+        let Some(chain_t) = ch.ref_from_target[*t].clone() else {
+            continue;
+        };
         let global_t = Uncertain {
             pose: problem.ref_from_target[*t],
             cov: target_cov(*t),
