@@ -208,9 +208,6 @@ pub fn calibrate_with(
         ));
     }
     let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
-    if session.manifest.method == Method::Vanishing {
-        return vanishing::calibrate(session, opts, progress);
-    }
     if session.cameras.len() < 2 {
         return Ok(failed(
             session,
@@ -221,6 +218,9 @@ pub fn calibrate_with(
             )],
             stages,
         ));
+    }
+    if session.manifest.method == Method::Vanishing {
+        return vanishing::calibrate(session, opts, progress);
     }
     // Input sufficiency per camera, named.
     let mut reasons = Vec::new();

@@ -42,17 +42,6 @@ pub(super) fn calibrate(
             stages,
         ));
     };
-    if ids.len() < 2 {
-        return Ok(failed(
-            session,
-            vec![reason(
-                "too_few_cameras",
-                "a rig calibration needs at least 2 cameras",
-                None,
-            )],
-            stages,
-        ));
-    }
     enter(progress, "camera_target_poses")?;
     let t = Instant::now();
     let vopts = VanishingOptions {
