@@ -71,6 +71,15 @@ pub fn inspect(
     expected: Option<(u32, u32)>,
     max_pixels: u64,
 ) -> Result<ImageMeta, ImageError> {
+    decode(bytes, expected, max_pixels).map(|(meta, _)| meta)
+}
+
+/// [`inspect`], keeping the decoded pixels (for detection).
+pub fn decode(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+    max_pixels: u64,
+) -> Result<(ImageMeta, image::DynamicImage), ImageError> {
     let meta = header(bytes)?;
     let pixels = meta.width as u64 * meta.height as u64;
     if pixels > max_pixels || meta.width == 0 || meta.height == 0 {
@@ -97,9 +106,10 @@ pub fn inspect(
     // 16-bit RGBA at most, plus decoder scratch.
     limits.max_alloc = Some(pixels * 8 + (64 << 20));
     r.limits(limits);
-    r.decode()
+    let img = r
+        .decode()
         .map_err(|e| ImageError::Undecodable(e.to_string()))?;
-    Ok(meta)
+    Ok((meta, img))
 }
 
 #[cfg(test)]

@@ -11,6 +11,7 @@ pub mod api;
 pub mod bench;
 pub mod calib;
 pub mod demo;
+pub mod detect;
 pub mod export;
 pub mod geometry;
 pub mod imageio;

@@ -6,7 +6,7 @@ use clap::{Parser, Subcommand};
 use rigcal::api::ServeConfig;
 use rigcal::export::{render, Format};
 use rigcal::jobs::worker::WorkerConfig;
-use rigcal::pipeline::{calibrate, CalibOptions};
+use rigcal::pipeline::{CalibOptions, DirSource, Silent};
 use rigcal::session::parse_session;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -55,6 +55,20 @@ enum Command {
         /// Scale of the robust loss, pixels.
         #[arg(long, default_value_t = 2.0)]
         loss_scale: f64,
+    },
+    /// Detect AprilTags / AprilGrid corners in images; prints detections as JSON (one
+    /// object per image, an array when several are given).
+    Detect {
+        #[arg(required = true)]
+        images: Vec<PathBuf>,
+        /// A target definition as in a session's `targets[]` (aprilgrid or apriltags),
+        /// or an array of them.
+        #[arg(long)]
+        target: PathBuf,
+        /// A camera as in a session's `cameras[]`: sides are then fitted in the
+        /// undistorted plane (better corners under distortion).
+        #[arg(long)]
+        camera: Option<PathBuf>,
     },
     /// Write a synthetic session and its ground truth (session.json, truth.json).
     Synth {
@@ -187,6 +201,22 @@ enum BenchCommand {
         #[arg(long, default_value_t = 1000)]
         seed: u64,
     },
+    /// Detector on rendered tags and AprilGrids: detection rate, wrong ids, corner RMS
+    /// error vs truth, time per image.
+    Detect {
+        /// Views per cell (single tags and grids × pinhole, radtan, equidistant).
+        #[arg(long, default_value_t = 40)]
+        views: usize,
+        #[arg(long, default_value_t = 1600)]
+        width: u32,
+        #[arg(long, default_value_t = 1200)]
+        height: u32,
+        #[arg(long, default_value_t = 1000)]
+        seed: u64,
+        /// Also write each view (PNG) and its truth (JSON) here, for benches/peers.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Wall time, iterations and final cost of the rig bundle adjustment.
     Speed {
         #[arg(long, default_value_t = 6)]
@@ -222,18 +252,29 @@ fn check_preset(preset: &str) -> Result<()> {
 
 fn run() -> Result<i32> {
     match Cli::parse().command {
+        Command::Detect {
+            images,
+            target,
+            camera,
+        } => detect_images(&images, &target, camera.as_deref()),
         Command::Calibrate {
             session,
             format,
             loss,
             loss_scale,
         } => {
-            let bytes = std::fs::read(&session)
-                .with_context(|| format!("reading {}", session.display()))?;
+            let session_path = session;
+            let bytes = std::fs::read(&session_path)
+                .with_context(|| format!("reading {}", session_path.display()))?;
             let session = parse_session(&bytes).map_err(|e| anyhow!("{}: {e}", "session"))?;
             let opts = CalibOptions::from_loss(&loss, loss_scale)
                 .map_err(|e| anyhow!("--{}: {}", e.field.replace('_', "-"), e.expected))?;
-            let doc = calibrate(&session, &opts);
+            let dir = session_path
+                .parent()
+                .map(|p| p.to_path_buf())
+                .unwrap_or_default();
+            let doc = rigcal::pipeline::run(&session, &DirSource(dir), &opts, &Silent)
+                .map_err(|c| anyhow!("cancelled at {}", c.0))?;
             match render(&doc, &session, format) {
                 Some(text) => println!("{text}"),
                 None => {
@@ -375,6 +416,33 @@ fn run() -> Result<i32> {
         }
         Command::Bench {
             what:
+                BenchCommand::Detect {
+                    views,
+                    width,
+                    height,
+                    seed,
+                    out,
+                },
+        } => {
+            if views == 0 || !(64..=8192).contains(&width) || !(64..=8192).contains(&height) {
+                return Err(anyhow!(
+                    "--views ≥ 1, --width and --height in 64..=8192 pixels"
+                ));
+            }
+            let cells = rigcal::bench::detect::study(views, width, height);
+            if let Some(dir) = out {
+                rigcal::bench::detect::write_views(&cells, seed, &dir)?;
+            }
+            let rows: Vec<_> = cells
+                .iter()
+                .enumerate()
+                .map(|(i, c)| rigcal::bench::detect::run_cell(c, seed + 1000 * i as u64))
+                .collect();
+            rigcal::bench::detect::print_table(&rows);
+            Ok(0)
+        }
+        Command::Bench {
+            what:
                 BenchCommand::Speed {
                     cameras,
                     poses,
@@ -429,4 +497,71 @@ fn run() -> Result<i32> {
             Ok(0)
         }
     }
+}
+
+/// `rigcal detect`: targets and camera from JSON files, detections as JSON on stdout.
+fn detect_images(
+    images: &[PathBuf],
+    target: &std::path::Path,
+    camera: Option<&std::path::Path>,
+) -> Result<i32> {
+    use rigcal::detect::{detect_tags, gray::Gray, DetectOptions};
+    use rigcal::session::{camera_from_spec, CameraSpec, TargetSpec};
+    let text = std::fs::read(target).with_context(|| format!("reading {}", target.display()))?;
+    let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
+        Ok(t) => t,
+        Err(_) => vec![serde_json::from_slice::<TargetSpec>(&text).map_err(|e| {
+            anyhow!("--target: a target object (aprilgrid | apriltags) or an array of them: {e}")
+        })?],
+    };
+    let camera = match camera {
+        Some(p) => {
+            let text = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+            let spec: CameraSpec = serde_json::from_slice(&text)
+                .map_err(|e| anyhow!("--camera: a camera as in a session's cameras[]: {e}"))?;
+            Some(camera_from_spec(&spec, "camera").map_err(|e| anyhow!("--camera: {e}"))?)
+        }
+        None => None,
+    };
+    let mut out = Vec::new();
+    let mut failures = 0;
+    for path in images {
+        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let size = camera.as_ref().map(|c| (c.width, c.height));
+        let result = rigcal::imageio::decode(
+            &bytes,
+            size,
+            rigcal::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
+        )
+        .map_err(|e| format!("expected {e}"))
+        .and_then(|(_, img)| {
+            let start = std::time::Instant::now();
+            let d = detect_tags(
+                &Gray::from_dynamic(&img),
+                &targets,
+                camera.as_ref(),
+                &DetectOptions::default(),
+            )?;
+            Ok((d, start.elapsed().as_secs_f64() * 1e3))
+        });
+        out.push(match result {
+            Ok((d, ms)) => {
+                let mut v = serde_json::to_value(&d)?;
+                v["image"] = serde_json::json!(path.display().to_string());
+                v["elapsed_ms"] = serde_json::json!(ms);
+                v
+            }
+            Err(e) => {
+                failures += 1;
+                serde_json::json!({"image": path.display().to_string(), "error": e})
+            }
+        });
+    }
+    let doc = if out.len() == 1 {
+        out.remove(0)
+    } else {
+        serde_json::Value::Array(out)
+    };
+    println!("{}", serde_json::to_string_pretty(&doc)?);
+    Ok(if failures > 0 { 1 } else { 0 })
 }

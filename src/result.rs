@@ -323,6 +323,38 @@ pub struct ResultDocument {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solver: Option<SolverReport>,
     pub stages: Vec<Stage>,
+    /// Sessions of images: what detection found in each image, and the skipped ones.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub detection: Option<DetectionReport>,
+}
+
+/// The detection stage's account of one image.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ImageReport {
+    /// The manifest field naming the image (`frames[2].images.front`).
+    pub field: String,
+    pub camera: String,
+    pub frame: i64,
+    pub path: String,
+    pub tags: usize,
+    /// Of `tags`, those found through the AprilGrid layout (missed by the quad detector).
+    pub tags_from_layout: usize,
+    pub points: usize,
+    /// Candidates refused, with why (duplicate id, not on any target, edges unmeasurable).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub rejected: Vec<String>,
+    /// Why the image was skipped (unreadable, not an image, wrong size, too large).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<String>,
+}
+
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct DetectionReport {
+    pub images_total: usize,
+    pub images_skipped: usize,
+    pub points_total: usize,
+    pub seconds: f64,
+    pub images: Vec<ImageReport>,
 }
 
 impl ResultDocument {

@@ -100,7 +100,7 @@ pub async fn create(
     // Images the manifest names, without detections and not uploaded yet.
     let undetected: std::collections::HashSet<String> =
         undetected_images(&parsed).into_iter().collect();
-    let missing: Vec<String> = super::sessions::slots(&parsed)
+    let missing: Vec<String> = crate::session::image_slots(&parsed)
         .into_iter()
         .filter(|slot| {
             undetected.contains(&slot.field)

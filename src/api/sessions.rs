@@ -10,7 +10,7 @@ use super::AppState;
 use crate::calib::check::capture_check;
 use crate::imageio::{self, ImageError, ImageMeta};
 use crate::pipeline::undetected_images;
-use crate::session::{parse_session, InputError, Session};
+use crate::session::{image_slots, parse_session, ImageSlot, InputError, Session};
 use crate::store::{rfc3339, ImageRow, SessionRow, Store, Tenant};
 use axum::body::Bytes;
 use axum::extract::{Path, State};
@@ -20,55 +20,6 @@ use axum::Json;
 use serde_json::{json, Value};
 use std::collections::{BTreeMap, HashMap};
 use std::io::Read;
-
-/// One image slot the manifest announces: (camera, frame index) and its path. Ring
-/// images of the vanishing method are slots of the auxiliary camera, by ring index.
-#[derive(Clone, Debug, serde::Serialize)]
-pub struct ImageSlot {
-    pub camera: String,
-    pub frame: i64,
-    pub path: String,
-    /// The manifest field naming it (`frames[2].images.front`, `ring[3].image`).
-    pub field: String,
-    /// The size the camera's images must have.
-    #[serde(skip)]
-    pub size: (u32, u32),
-}
-
-pub(super) fn slots(session: &Session) -> Vec<ImageSlot> {
-    let mut out = Vec::new();
-    for (fi, f) in session.manifest.frames.iter().enumerate() {
-        for (cam, path) in &f.images {
-            let Some(c) = session
-                .camera_index(cam)
-                .map(|i| &session.cameras[i].camera)
-            else {
-                continue;
-            };
-            out.push(ImageSlot {
-                camera: cam.clone(),
-                frame: f.index,
-                path: path.clone(),
-                field: format!("frames[{fi}].images.{cam}"),
-                size: (c.width, c.height),
-            });
-        }
-    }
-    if let Some(v) = &session.vanishing {
-        for (ri, r) in session.manifest.ring.iter().enumerate() {
-            if let Some(path) = &r.image {
-                out.push(ImageSlot {
-                    camera: v.auxiliary.id.clone(),
-                    frame: r.index,
-                    path: path.clone(),
-                    field: format!("ring[{ri}].image"),
-                    size: (v.auxiliary.camera.width, v.auxiliary.camera.height),
-                });
-            }
-        }
-    }
-    out
-}
 
 /// Parse a stored or uploaded manifest. Syntax errors are 400 `malformed-json`;
 /// content errors 422 with the field path (`limit-exceeded` for the size limits).
@@ -133,7 +84,7 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
         .iter()
         .map(|i| ((i.camera.clone(), i.frame), i))
         .collect();
-    let all = slots(session);
+    let all = image_slots(session);
     let missing: Vec<&ImageSlot> = all
         .iter()
         .filter(|s| !have.contains_key(&(s.camera.clone(), s.frame)))
@@ -303,7 +254,7 @@ fn inspect_archive_images(
     max_pixels: u64,
 ) -> Result<Vec<(ImageSlot, ImageMeta, Vec<u8>)>, ApiError> {
     let mut out = Vec::new();
-    for slot in slots(session) {
+    for slot in image_slots(session) {
         let Some(bytes) = files.get(&format!("{prefix}{}", slot.path)) else {
             continue;
         };
@@ -477,7 +428,7 @@ pub async fn put_image(
 ) -> Result<Json<Value>, ApiError> {
     let row = session_or_404(&state.store, &tenant, &id).await?;
     let session = stored_session(&row)?;
-    let all = slots(&session);
+    let all = image_slots(&session);
     let mut ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
     if let Some(v) = &session.vanishing {
         ids.push(v.auxiliary.id.as_str());

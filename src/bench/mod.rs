@@ -3,5 +3,6 @@
 //! numbers are recorded in `docs/accuracy.md` and `docs/performance.md`.
 
 pub mod accuracy;
+pub mod detect;
 pub mod ring;
 pub mod speed;

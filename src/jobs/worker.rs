@@ -9,8 +9,10 @@
 
 use super::queue::{JobRow, Queue};
 use super::JobOptions;
-use crate::pipeline::{calibrate_with, Cancelled, Progress};
+use crate::pipeline::{run, Cancelled, ImageSource, Progress};
 use crate::session::parse_session;
+use crate::session::ImageSlot;
+use crate::store::blob::BlobStore;
 use crate::store::Store;
 use crate::telemetry::Metrics;
 use serde_json::json;
@@ -142,6 +144,20 @@ async fn run_job(
         }
     };
 
+    let images = match store.images(&job.session_id).await {
+        Ok(rows) => BlobSource {
+            blobs: store.blobs.clone(),
+            by_slot: rows
+                .into_iter()
+                .map(|r| ((r.camera, r.frame), r.sha256))
+                .collect(),
+        },
+        Err(e) => {
+            let p = problem("storage_error", e.to_string(), None);
+            let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+            return;
+        }
+    };
     let stop = Arc::new(AtomicBool::new(false));
     let lost = Arc::new(AtomicBool::new(false));
     let (tx, mut rx) = mpsc::unbounded_channel::<(String, f64)>();
@@ -151,7 +167,7 @@ async fn run_job(
     };
     let solve = tokio::task::spawn_blocking(move || {
         std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-            calibrate_with(&parsed, &opts, &progress)
+            run(&parsed, &images, &opts, &progress)
         }))
     });
     tokio::pin!(solve);
@@ -288,4 +304,22 @@ pub async fn run_standalone(data_dir: &std::path::Path, cfg: WorkerConfig) -> an
     spawn(store, metrics, cfg);
     crate::signals::shutdown_signal().await;
     Ok(())
+}
+
+/// A session's uploaded images, read from the blob store by (camera, frame).
+struct BlobSource {
+    blobs: BlobStore,
+    by_slot: std::collections::HashMap<(String, i64), String>,
+}
+
+impl ImageSource for BlobSource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        let sha = self
+            .by_slot
+            .get(&(slot.camera.clone(), slot.frame))
+            .ok_or_else(|| format!("{} was never uploaded", slot.field))?;
+        self.blobs
+            .get(sha)
+            .map_err(|e| format!("stored image {sha} unreadable: {e}"))
+    }
 }

@@ -13,6 +13,9 @@ use crate::session::{Method, Session};
 use crate::solver::bundle::LmOptions;
 use std::time::Instant;
 
+pub mod detection;
+pub use detection::{DirSource, ImageSource, NoImages};
+
 mod vanishing;
 
 /// The rig is inconsistent when its residual σ exceeds this multiple of the scenes' σ
@@ -97,6 +100,7 @@ pub(crate) fn failed(
         initialisation: vec![],
         solver: None,
         stages,
+        detection: None,
     }
 }
 
@@ -166,6 +170,30 @@ pub fn undetected_images(session: &Session) -> Vec<String> {
     out
 }
 
+/// Run a session end to end: detection on the images that need it (read from
+/// `images`), then the calibration of its method. The result carries the detection
+/// report.
+pub fn run(
+    session: &Session,
+    images: &dyn ImageSource,
+    opts: &CalibOptions,
+    progress: &dyn Progress,
+) -> Result<ResultDocument, Cancelled> {
+    let (detected, report) = detection::detect_session(session, images, progress)?;
+    let mut doc = calibrate_with(&detected, opts, progress)?;
+    if let Some(r) = &report {
+        doc.stages.insert(
+            0,
+            Stage {
+                name: "detection".into(),
+                seconds: r.seconds,
+            },
+        );
+    }
+    doc.detection = report;
+    Ok(doc)
+}
+
 /// Run the motion method on a validated session.
 pub fn calibrate(session: &Session, opts: &CalibOptions) -> ResultDocument {
     match calibrate_with(session, opts, &Silent) {
@@ -198,7 +226,7 @@ pub fn calibrate_with(
             vec![reason(
                 "detection_unavailable",
                 format!(
-                    "{n} image(s) have no detections ({}{}); this build calibrates from detections (observations) only",
+                    "{n} image(s) have no detections ({}{}); this build detects AprilTag and AprilGrid targets only (line targets and `points` targets need detections in the session)",
                     undetected[0],
                     if n > 1 { ", ..." } else { "" }
                 ),
@@ -593,5 +621,6 @@ pub fn calibrate_with(
             termination: ba.summary.termination.clone(),
         }),
         stages,
+        detection: None,
     })
 }

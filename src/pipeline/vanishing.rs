@@ -227,5 +227,6 @@ pub(super) fn calibrate(
             termination: sol.summary.termination.clone(),
         }),
         stages,
+        detection: None,
     })
 }

@@ -3,11 +3,16 @@
 
 mod lines;
 mod raw;
+mod slots;
 mod validate;
 
 pub use lines::{LineObs, LineTargetDef, RingView, VanishingInput};
 pub use raw::*;
-pub use validate::{parse_session, resolve_points, PointKind, ResolvedPoints, Session};
+pub use slots::{image_slots, ImageSlot};
+pub use validate::{
+    camera_from_spec, from_manifest, parse_session, resolve_points, PointKind, ResolvedPoints,
+    Session,
+};
 
 /// An input error: which field, and what was expected there.
 #[derive(Debug, Clone, PartialEq, thiserror::Error, serde::Serialize)]

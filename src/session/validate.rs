@@ -125,7 +125,8 @@ pub fn parse_session(bytes: &[u8]) -> Result<Session, InputError> {
     validate(manifest)
 }
 
-pub(super) fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
+/// A camera model from its manifest entry; `at` is the entry's field path for errors.
+pub fn camera_from_spec(spec: &CameraSpec, at: &str) -> Result<Camera, InputError> {
     let d = &spec.distortion;
     for (k, x) in d.iter().enumerate() {
         finite(format!("{at}.distortion[{k}]"), *x)?;
@@ -354,6 +355,12 @@ fn points_planar(points: &BTreeMap<String, [f64; 3]>) -> bool {
         .map(|p| Vec3::new(p[0], p[1], p[2]))
         .collect();
     crate::calib::pnp::is_planar(&pts)
+}
+
+/// Validate a manifest already in memory (e.g. after the detection stage filled in
+/// observations): the same checks as [`parse_session`].
+pub fn from_manifest(m: SessionManifest) -> Result<Session, InputError> {
+    validate(m)
 }
 
 fn validate(m: SessionManifest) -> Result<Session, InputError> {

@@ -902,6 +902,11 @@ fn eliminate_block(
         }
     }
     let coupled: usize = couplings.iter().map(|c| c.1).sum();
+    if coupled == 0 {
+        // Nothing in the reduced system depends on this block (e.g. a scene whose only
+        // free parameters are eliminated ones): no update, and no dense row to batch.
+        return;
+    }
     if coupled * 8 >= s.nrows() {
         // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse).
         let sub = DMatrix::from_fn(ze, ze, |i, j| inv[(i, j)]);

@@ -25,7 +25,9 @@ pub const PRESETS: &[&str] = &[
     "wu-table2",
 ];
 
+pub mod render;
 pub mod ring;
+pub mod tagscene;
 
 /// The ground truth written next to a synthetic session.
 #[derive(Clone, Debug, Serialize, Deserialize)]

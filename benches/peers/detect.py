@@ -1,0 +1,130 @@
+#!/usr/bin/env python3
+"""rigcal's tag detector side by side with pupil-apriltags and OpenCV cv2.aruco
+(tag36h11, CORNER_REFINE_SUBPIX) on the same rendered images with known corners.
+
+    pip install pupil-apriltags opencv-contrib-python-headless numpy
+    cargo build --release
+    python3 benches/peers/detect.py --views 20            # 6 cells × 20 views, 1600×1200
+
+Renders the views with `rigcal bench detect --out DIR` (which also prints rigcal's own
+table), then runs every detector on every PNG, single-threaded, and prints detection
+rate, wrong ids, corner RMS error and median time per image per cell. Corner
+conventions: pixel centres at integer coordinates (rigcal, OpenCV); the AprilTag C
+library (pupil-apriltags) puts them at +0.5, which is subtracted. Corners are matched to
+the nearest true corner of the same id, so no detector is penalised for its corner order.
+Times are the detection call only (image already decoded), median per image.
+"""
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+
+import cv2
+import numpy as np
+from pupil_apriltags import Detector
+
+
+def match_error(corners, truth):
+    """Per-corner distance to the nearest true corner."""
+    return [min(np.hypot(*(np.array(c) - np.array(t))) for t in truth) for c in corners]
+
+
+def in_print(entry, tid):
+    if not entry["grid"]:
+        return False
+    t = entry["targets"][0]
+    return t["first_id"] <= tid < t["first_id"] + t["rows"] * t["cols"]
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--views", type=int, default=20)
+    ap.add_argument("--width", type=int, default=1600)
+    ap.add_argument("--height", type=int, default=1200)
+    ap.add_argument("--rigcal", default="target/release/rigcal")
+    ap.add_argument("--dir", default=None, help="reuse/keep rendered views here")
+    a = ap.parse_args()
+    cv2.setNumThreads(1)
+    d = a.dir or tempfile.mkdtemp(prefix="rigcal-detect-")
+    if not os.path.exists(os.path.join(d, "truth.json")):
+        subprocess.run([a.rigcal, "bench", "detect", "--views", str(a.views), "--width",
+                        str(a.width), "--height", str(a.height), "--out", d], check=True)
+    truth = json.load(open(os.path.join(d, "truth.json")))
+
+    pupil = Detector(families="tag36h11", nthreads=1, quad_decimate=2.0, refine_edges=1)
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    aruco = cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+
+    def run_rigcal(entry, path, with_camera):
+        tf = os.path.join(d, "target.json")
+        json.dump(entry["targets"][0], open(tf, "w"))
+        cmd = [a.rigcal, "detect", path, "--target", tf]
+        if with_camera:
+            cf = os.path.join(d, "camera.json")
+            json.dump(entry["camera"], open(cf, "w"))
+            cmd += ["--camera", cf]
+        out = json.loads(subprocess.run(cmd, capture_output=True, check=False).stdout)
+        return [(t["id"], t["corners"]) for t in out.get("tags", [])], out.get("elapsed_ms", 0.0)
+
+    def run_pupil(img):
+        t = time.perf_counter()
+        dets = pupil.detect(img)
+        ms = (time.perf_counter() - t) * 1e3
+        return [(r.tag_id, (r.corners - 0.5).tolist()) for r in dets], ms
+
+    def run_aruco(img):
+        t = time.perf_counter()
+        corners, ids, _ = aruco.detectMarkers(img)
+        ms = (time.perf_counter() - t) * 1e3
+        if ids is None:
+            return [], ms
+        return [(int(i), c.reshape(4, 2).tolist()) for i, c in zip(ids.flatten(), corners)], ms
+
+    names = ["rigcal", "rigcal (no camera)", "pupil-apriltags", "cv2.aruco subpix"]
+    stats = {}
+    for entry in truth:
+        path = os.path.join(d, entry["image"])
+        img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+        truths = {t["id"]: t["corners"] for t in entry["tags"]}
+        results = {
+            "rigcal": run_rigcal(entry, path, True),
+            "rigcal (no camera)": run_rigcal(entry, path, False),
+            "pupil-apriltags": run_pupil(img),
+            "cv2.aruco subpix": run_aruco(img),
+        }
+        label = ("grid " if entry["grid"] else "tag ") + entry["lens"]
+        for name, (dets, ms) in results.items():
+            s = stats.setdefault((label, name), {"visible": 0, "found": 0, "wrong": 0,
+                                                 "err": [], "ms": []})
+            s["visible"] += len(truths)
+            s["ms"].append(ms)
+            seen = set()
+            for tid, corners in dets:
+                if tid in truths and tid not in seen:
+                    seen.add(tid)
+                    s["found"] += 1
+                    s["err"] += match_error(corners, truths[tid])
+                elif tid not in truths and not in_print(entry, tid):
+                    s["wrong"] += 1
+
+    print(f"\n{'cell':<18} {'detector':<20} {'visible':>7} {'found':>6} {'rate %':>7} "
+          f"{'wrong':>5} {'rms px':>8} {'p95 px':>7} {'med ms':>7}")
+    for label in sorted({k[0] for k in stats}):
+        for name in names:
+            s = stats[(label, name)]
+            e = np.array(s["err"]) if s["err"] else np.array([np.nan])
+            print(f"{label:<18} {name:<20} {s['visible']:>7} {s['found']:>6} "
+                  f"{100 * s['found'] / max(1, s['visible']):>7.2f} {s['wrong']:>5} "
+                  f"{np.sqrt(np.mean(e ** 2)):>8.4f} {np.percentile(e, 95):>7.3f} "
+                  f"{statistics.median(s['ms']):>7.1f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,265 @@
+//! Detection from images (issue 3): AprilTag tag36h11 corners with subpixel edge
+//! refinement, Kalibr AprilGrids completed through their layout.
+//!
+//! Pipeline per image: quad candidates from the AprilTag 3 C detector ([`quads`]) →
+//! each candidate's corners re-measured from its outer edges ([`refine`]) → candidates
+//! assigned to the session's targets by id → each AprilGrid checked and completed
+//! through its layout ([`grid`]). Points are measured on the raw image and reported in
+//! raw pixels (the calibration models distortion itself); with a camera, the sides are
+//! fitted in the undistorted plane so distortion does not bend them. Nothing is
+//! resampled.
+
+pub mod board;
+pub mod gray;
+mod grid;
+pub mod quads;
+pub mod refine;
+pub mod tag36h11;
+mod verify;
+
+use crate::geometry::{Camera, Vec2};
+use crate::session::TargetSpec;
+use board::GridLayout;
+use gray::Gray;
+use refine::{refine_quad, Lens};
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// How far (px) the quad detector's sides may be from the true ones: in AprilGrids its
+/// quads often take in the crossing squares and sit 2-4 px out.
+const QUAD_REACH: f64 = 4.0;
+
+#[derive(Clone, Debug, Default)]
+pub struct DetectOptions {
+    pub quads: quads::QuadOptions,
+}
+
+/// One tag found in an image.
+#[derive(Clone, Debug, Serialize)]
+pub struct TagDetection {
+    pub target: String,
+    pub id: u32,
+    /// Raw pixels, corner `k` counter-clockwise from the tag's bottom-left.
+    pub corners: [[f64; 2]; 4],
+    /// Bit errors corrected when decoding.
+    pub hamming: u32,
+    /// Decision margin: the quad detector's for `quad` tags, the mean white − black
+    /// cell level for `layout` tags.
+    pub margin: f64,
+    /// Grey-level step across the tag's outer edges.
+    pub contrast: f64,
+    /// RMS distance (px) of the measured edge points from the fitted sides.
+    pub edge_rms: f64,
+    /// `quad` (found by the quad detector) or `layout` (predicted from the board
+    /// layout, then measured and its bits verified).
+    pub source: &'static str,
+}
+
+/// One measured point, named as the session names it.
+#[derive(Clone, Debug, Serialize)]
+pub struct PointDetection {
+    pub point: String,
+    pub u: f64,
+    pub v: f64,
+    /// Board coordinates (m) for AprilGrid corners.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub board: Option<[f64; 3]>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Rejection {
+    pub id: u32,
+    pub reason: String,
+}
+
+/// Everything found in one image.
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageDetections {
+    pub width: usize,
+    pub height: usize,
+    pub tags: Vec<TagDetection>,
+    pub points: Vec<PointDetection>,
+    /// Candidates found and then refused, with why.
+    pub rejected: Vec<Rejection>,
+}
+
+/// What the detector looks for, from the session's targets.
+enum Wanted<'a> {
+    Grid(&'a str, GridLayout),
+    Tags(&'a str, Option<&'a [u32]>),
+}
+
+fn wanted(targets: &[TargetSpec]) -> Vec<Wanted<'_>> {
+    targets
+        .iter()
+        .filter_map(|t| match t {
+            TargetSpec::Aprilgrid {
+                id,
+                rows,
+                cols,
+                tag_size,
+                tag_spacing,
+                first_id,
+            } => Some(Wanted::Grid(
+                id,
+                GridLayout {
+                    rows: *rows,
+                    cols: *cols,
+                    tag_size: *tag_size,
+                    spacing: *tag_spacing,
+                    first_id: *first_id,
+                },
+            )),
+            TargetSpec::Apriltags { id, ids, .. } => Some(Wanted::Tags(id, ids.as_deref())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Detect the AprilTag targets of `targets` in `img`.
+pub fn detect_tags(
+    img: &Gray,
+    targets: &[TargetSpec],
+    camera: Option<&Camera>,
+    opts: &DetectOptions,
+) -> Result<ImageDetections, String> {
+    let lens = Lens(camera);
+    let candidates = quads::detect(img, &opts.quads)?;
+    let mut rejected = Vec::new();
+    // An id seen twice is ambiguous: neither copy is used.
+    let mut count: BTreeMap<u32, usize> = BTreeMap::new();
+    for c in &candidates {
+        *count.entry(c.id).or_default() += 1;
+    }
+    let mut refined: BTreeMap<u32, grid::Found> = BTreeMap::new();
+    for c in candidates {
+        if count[&c.id] > 1 {
+            rejected.push(Rejection {
+                id: c.id,
+                reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
+            });
+            continue;
+        }
+        match refine_candidate(img, &c, lens, opts.quads.max_hamming) {
+            Some(r) => {
+                refined.insert(
+                    c.id,
+                    grid::Found {
+                        refined: r,
+                        hamming: c.hamming,
+                        margin: c.margin,
+                        predicted: false,
+                    },
+                );
+            }
+            None => rejected.push(Rejection {
+                id: c.id,
+                reason: format!(
+                    "tag {}: its edges could not be measured (cut by the image border, too small or blurred)",
+                    c.id
+                ),
+            }),
+        }
+    }
+    let mut tags = Vec::new();
+    let mut points = Vec::new();
+    let mut emit = |target: &str, id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
+        let c = &f.refined.corners;
+        tags.push(TagDetection {
+            target: target.to_string(),
+            id,
+            corners: [0, 1, 2, 3].map(|k| [c[k].x, c[k].y]),
+            hamming: f.hamming,
+            margin: f.margin,
+            contrast: f.refined.contrast,
+            edge_rms: f.refined.edge_rms,
+            source: if f.predicted { "layout" } else { "quad" },
+        });
+        for (k, p) in c.iter().enumerate() {
+            points.push(PointDetection {
+                point: format!("tag:{id}:{k}"),
+                u: p.x,
+                v: p.y,
+                board: layout
+                    .and_then(|l| l.corner(id, k))
+                    .map(|b| [b.x, b.y, 0.0]),
+            });
+        }
+    };
+    let wanted = wanted(targets);
+    // Boards first: their ids are theirs.
+    for w in &wanted {
+        if let Wanted::Grid(name, layout) = w {
+            let seeds: BTreeMap<u32, grid::Found> = layout
+                .ids()
+                .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
+                .collect();
+            if seeds.is_empty() {
+                continue;
+            }
+            let mut rej = Vec::new();
+            let max_h = opts.quads.max_hamming;
+            for (id, f) in grid::complete(img, layout, seeds, lens, max_h, &mut rej) {
+                emit(name, id, &f, Some(layout));
+            }
+            rejected.extend(rej.into_iter().map(|(id, reason)| Rejection { id, reason }));
+        }
+    }
+    for w in &wanted {
+        if let Wanted::Tags(name, ids) = w {
+            let take: Vec<u32> = refined
+                .keys()
+                .copied()
+                .filter(|id| ids.is_none_or(|l| l.contains(id)))
+                .collect();
+            for id in take {
+                if let Some(f) = refined.remove(&id) {
+                    emit(name, id, &f, None);
+                }
+            }
+        }
+    }
+    for id in refined.keys() {
+        rejected.push(Rejection {
+            id: *id,
+            reason: format!("tag {id} belongs to none of the session's targets"),
+        });
+    }
+    Ok(ImageDetections {
+        width: img.width,
+        height: img.height,
+        tags,
+        points,
+        rejected,
+    })
+}
+
+/// Refine a quad-detector candidate. In AprilGrids the quad sometimes runs one corner
+/// out along a crossing square (10 px and more); then each corner in turn is replaced by
+/// the parallelogram completion of the other three, and the variant whose sides measure
+/// cleanly and whose bits read as the candidate's id is kept.
+fn refine_candidate(
+    img: &Gray,
+    c: &quads::Candidate,
+    lens: Lens,
+    max_hamming: u32,
+) -> Option<refine::Refined> {
+    if let Some(r) = refine_quad(img, &c.corners, lens, QUAD_REACH) {
+        return Some(r);
+    }
+    let q = &c.corners;
+    (0..4)
+        .filter_map(|k| {
+            let mut v = *q;
+            v[k] = q[(k + 1) % 4] + q[(k + 3) % 4] - q[(k + 2) % 4];
+            let r = refine_quad(img, &v, lens, QUAD_REACH)?;
+            let reading = verify::read_tag(img, &r.corners, lens, c.id)?;
+            (reading.hamming <= max_hamming && reading.border_black >= 26).then_some(r)
+        })
+        .min_by(|a, b| a.edge_rms.total_cmp(&b.edge_rms))
+}
+
+/// Corner `k` of a detection as a vector.
+pub fn corner(t: &TagDetection, k: usize) -> Vec2 {
+    Vec2::new(t.corners[k][0], t.corners[k][1])
+}

@@ -1,0 +1,266 @@
+//! Subpixel corners from the tag's outer edges: the quad fit of the detector is only a
+//! starting point.
+//!
+//! Each side of the black square is sampled across (profiles normal to the side, one
+//! per pixel of its length, about a cell clear of the corners where AprilGrid crossing
+//! squares touch it). On each profile the edge is where the grey level crosses the mean of the levels
+//! at `±d` around it — for a symmetric blur that is exactly the edge, whatever the
+//! contrast and shading. The edge points of a side are moved to undistorted normalised
+//! coordinates (with the camera, so sides are straight lines even under strong
+//! distortion), fitted by total least squares with outliers trimmed, and the corners
+//! are the intersections of adjacent sides, projected back to raw pixels. Two passes,
+//! the second sampling along the first's sides.
+
+use super::gray::Gray;
+use crate::geometry::{Camera, Vec2, Vec3};
+
+/// Maps between raw pixels and the plane where a tag's sides are straight.
+#[derive(Clone, Copy)]
+pub struct Lens<'a>(pub Option<&'a Camera>);
+
+impl Lens<'_> {
+    pub fn to_plane(&self, px: Vec2) -> Option<Vec2> {
+        match self.0 {
+            Some(c) => c.unproject(&px),
+            None => Some(px),
+        }
+    }
+
+    pub fn to_pixel(&self, q: Vec2) -> Option<Vec2> {
+        match self.0 {
+            Some(c) => c.project(&Vec3::new(q.x, q.y, 1.0)),
+            None => Some(q),
+        }
+    }
+}
+
+/// A refined quad and how well its sides fit.
+#[derive(Clone, Debug)]
+pub struct Refined {
+    pub corners: [Vec2; 4],
+    /// RMS distance (px) of the edge points from their fitted sides.
+    pub edge_rms: f64,
+    /// Mean grey-level step across the sides (white − black).
+    pub contrast: f64,
+}
+
+/// A line `n · p = c` with `|n| = 1`.
+#[derive(Clone, Copy, Debug)]
+struct Line {
+    n: Vec2,
+    c: f64,
+}
+
+fn fit_line(pts: &[Vec2]) -> Option<Line> {
+    if pts.len() < 2 {
+        return None;
+    }
+    let m = pts.iter().sum::<Vec2>() / pts.len() as f64;
+    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
+    for p in pts {
+        let d = p - m;
+        sxx += d.x * d.x;
+        sxy += d.x * d.y;
+        syy += d.y * d.y;
+    }
+    // Normal = eigenvector of the smaller eigenvalue of the scatter matrix.
+    let theta = 0.5 * (2.0 * sxy).atan2(sxx - syy);
+    let n = Vec2::new(-theta.sin(), theta.cos());
+    Some(Line { n, c: n.dot(&m) })
+}
+
+fn intersect(a: Line, b: Line) -> Option<Vec2> {
+    let det = a.n.x * b.n.y - a.n.y * b.n.x;
+    if det.abs() < 1e-12 {
+        return None;
+    }
+    Some(Vec2::new(
+        (a.c * b.n.y - a.n.y * b.c) / det,
+        (a.n.x * b.c - a.c * b.n.x) / det,
+    ))
+}
+
+/// Where along the profile `s ↦ I(p + s·n)` (dark at `s < 0`, bright at `s > 0`) the
+/// edge crosses, searched within `±reach` of 0, with symmetric levels at `±d`.
+fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64, f64)> {
+    let at = |s: f64| img.sample(p + n * s);
+    // Coarse: the steepest dark→bright step.
+    let step = 0.25;
+    let k = (reach / step).ceil() as i32;
+    let mut best = (f64::NEG_INFINITY, 0.0);
+    for i in -k..=k {
+        let s = i as f64 * step;
+        let g = at(s + 0.5)? - at(s - 0.5)?;
+        if g > best.0 {
+            best = (g, s);
+        }
+    }
+    if best.0 <= 0.0 {
+        return None;
+    }
+    let mut e = best.1;
+    let mut contrast = 0.0;
+    for _ in 0..3 {
+        let (dark, bright) = (at(e - d)?, at(e + d)?);
+        contrast = bright - dark;
+        if contrast <= 0.0 {
+            return None;
+        }
+        let mid = 0.5 * (dark + bright);
+        // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge).
+        let (mut lo, mut hi) = (e - d, e + d);
+        for _ in 0..14 {
+            let m = 0.5 * (lo + hi);
+            if at(m)? < mid {
+                lo = m;
+            } else {
+                hi = m;
+            }
+        }
+        let next = 0.5 * (lo + hi);
+        let moved = (next - e).abs();
+        e = next;
+        if e.abs() > reach + d || moved < 1e-4 {
+            break;
+        }
+    }
+    (e.abs() <= reach + d).then_some((e, contrast))
+}
+
+/// Refine a tag's black square. `corners` in raw pixels, counter-clockwise in the tag's
+/// frame (any consistent order round the quad works); `reach` (px) is how far the true
+/// sides may be from the given ones.
+pub fn refine_quad(img: &Gray, corners: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Refined> {
+    let mut plane = [Vec2::zeros(); 4];
+    for (k, c) in corners.iter().enumerate() {
+        plane[k] = lens.to_plane(*c)?;
+    }
+    let mut out = None;
+    let mut reach = reach;
+    for _pass in 0..2 {
+        let (refined, lines) = refine_once(img, &plane, lens, reach)?;
+        plane = refined;
+        out = Some(lines);
+        reach = 1.0;
+    }
+    let (edge_rms, contrast) = out?;
+    let mut px = [Vec2::zeros(); 4];
+    for k in 0..4 {
+        px[k] = lens.to_pixel(plane[k])?;
+    }
+    Some(Refined {
+        corners: px,
+        edge_rms,
+        contrast,
+    })
+}
+
+type Pass = ([Vec2; 4], (f64, f64));
+
+fn refine_once(img: &Gray, plane: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Pass> {
+    let px: Vec<Vec2> = plane
+        .iter()
+        .map(|q| lens.to_pixel(*q))
+        .collect::<Option<_>>()?;
+    let centre = px.iter().sum::<Vec2>() / 4.0;
+    let mut lines = [Line {
+        n: Vec2::zeros(),
+        c: 0.0,
+    }; 4];
+    let (mut sq, mut count, mut contrast_sum, mut contrast_n) = (0.0, 0usize, 0.0, 0usize);
+    for side in 0..4 {
+        let (a, b) = (plane[side], plane[(side + 1) % 4]);
+        let len_px = (px[(side + 1) % 4] - px[side]).norm();
+        if len_px < 6.0 {
+            return None;
+        }
+        // The border is one cell (1/8 of the side) wide: stay inside it.
+        let border = len_px / 8.0;
+        let d = (0.45 * border).clamp(0.6, 2.5);
+        let reach_here = reach.min(0.9 * border);
+        // Profiles keep ~1 cell clear of the corners (AprilGrid crossing squares).
+        let (t0, span) = (0.12, 0.76);
+        let samples = (len_px * span).ceil().max(6.0) as usize;
+        let mut pts = Vec::with_capacity(samples);
+        for i in 0..samples {
+            let t = t0 + span * (i as f64 + 0.5) / samples as f64;
+            let q = a + (b - a) * t;
+            let p = lens.to_pixel(q)?;
+            let dt = 1e-3;
+            let p2 = lens.to_pixel(a + (b - a) * (t + dt))?;
+            let tangent = (p2 - p).normalize();
+            let mut n = Vec2::new(tangent.y, -tangent.x);
+            if n.dot(&(p - centre)) < 0.0 {
+                n = -n;
+            }
+            if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d) {
+                if let Some(q) = lens.to_plane(p + n * e) {
+                    pts.push((q, p + n * e));
+                    contrast_sum += contrast;
+                    contrast_n += 1;
+                }
+            }
+        }
+        if pts.len() < 4 {
+            return None;
+        }
+        let plane_pts: Vec<Vec2> = pts.iter().map(|p| p.0).collect();
+        let mut line = fit_line(&plane_pts)?;
+        // Trim outliers (a blot, a finger, a neighbouring edge) and refit.
+        let scale = (px[(side + 1) % 4] - px[side]).norm() / (b - a).norm().max(1e-300);
+        let res: Vec<f64> = plane_pts
+            .iter()
+            .map(|q| (line.n.dot(q) - line.c).abs() * scale)
+            .collect();
+        let mut sorted = res.clone();
+        sorted.sort_by(|x, y| x.total_cmp(y));
+        let med = sorted[sorted.len() / 2];
+        let keep: Vec<Vec2> = plane_pts
+            .iter()
+            .zip(&res)
+            .filter(|(_, r)| **r <= (3.0 * 1.4826 * med).max(0.05))
+            .map(|(q, _)| *q)
+            .collect();
+        if keep.len() >= 4 {
+            line = fit_line(&keep)?;
+        }
+        for q in &keep {
+            let r = (line.n.dot(q) - line.c) * scale;
+            sq += r * r;
+            count += 1;
+        }
+        lines[side] = line;
+    }
+    let mut out = [Vec2::zeros(); 4];
+    for (k, o) in out.iter_mut().enumerate() {
+        // Corner k joins side k−1 (from corner k−1) and side k (to corner k+1).
+        *o = intersect(lines[(k + 3) % 4], lines[k])?;
+    }
+    // A refined quad far from its start is a different edge, not a refinement.
+    for k in 0..4 {
+        let moved = (lens.to_pixel(out[k])? - px[k]).norm();
+        if moved > reach + 2.0 {
+            return None;
+        }
+    }
+    Some((
+        out,
+        (
+            (sq / count.max(1) as f64).sqrt(),
+            contrast_sum / contrast_n.max(1) as f64,
+        ),
+    ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lines_fit_and_intersect_in_any_orientation() {
+        let v: Vec<Vec2> = (0..10).map(|i| Vec2::new(3.0, i as f64)).collect();
+        let h: Vec<Vec2> = (0..10).map(|i| Vec2::new(i as f64, -2.0)).collect();
+        let p = intersect(fit_line(&v).unwrap(), fit_line(&h).unwrap()).unwrap();
+        assert!((p - Vec2::new(3.0, -2.0)).norm() < 1e-12);
+    }
+}

@@ -1,0 +1,370 @@
+//! The detector against rendered images with known corners (issue 3), and sessions of
+//! images calibrated end to end through the detection stage.
+
+use rigcal::bench::detect::{run_cell, Cell};
+use rigcal::detect::{detect_tags, gray::Gray, quads, DetectOptions};
+use rigcal::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use rigcal::session::TargetSpec;
+use rigcal::synth::render::{render, RenderOptions};
+use rigcal::synth::tagscene::{scene, Lens, SceneParams};
+use std::process::Command;
+
+fn cell(grid: bool, lens: Lens, n: usize) -> Cell {
+    Cell {
+        grid,
+        lens,
+        sizes: if grid { (36.0, 90.0) } else { (40.0, 200.0) },
+        max_obliquity: 60.0,
+        n,
+        width: 800,
+        height: 600,
+        noise: 2.0,
+        blur: 0.8,
+    }
+}
+
+/// Single tags, 40-200 px, up to 60°, σ = 2 grey levels: every tag, right id, corners
+/// within the issue's 0.05 px RMS — with and without lens distortion. (Tags of 24-40 px
+/// are all found but their corners are at ~0.1 px RMS: see the next test.)
+#[test]
+fn single_tags_are_found_with_subpixel_corners() {
+    for lens in [Lens::Pinhole, Lens::Radtan, Lens::Equidistant] {
+        let row = run_cell(&cell(false, lens, 10), 7);
+        assert_eq!(row.wrong_id, 0, "{row:?}");
+        assert_eq!(row.found, row.visible, "{row:?}");
+        assert!(row.corner_rms_px <= 0.05, "{row:?}");
+    }
+}
+
+/// Small tags (24-40 px across head-on, up to 60°, so down to ~12 px foreshortened):
+/// never a wrong id, at most one in eight missed, corners within 0.2 px RMS. The issue
+/// asks ≥ 99.5 % and 0.05 px here; not met yet — issue 3 stays open on this.
+#[test]
+fn small_tags_are_found() {
+    for lens in [Lens::Pinhole, Lens::Radtan] {
+        let mut c = cell(false, lens, 8);
+        c.sizes = (24.0, 40.0);
+        let row = run_cell(&c, 21);
+        assert_eq!(row.wrong_id, 0, "{row:?}");
+        assert!(row.found + 1 >= row.visible, "{row:?}");
+        assert!(row.corner_rms_px <= 0.2, "{row:?}");
+    }
+}
+
+/// Kalibr AprilGrids: the quad detector alone misses most tags (crossing squares), the
+/// layout finds the rest; ≥ 99.5 % found, no wrong id, corners ≤ 0.05 px RMS (tags of
+/// 36-90 px head-on, up to 60°).
+#[test]
+fn aprilgrids_are_completed_through_their_layout() {
+    let (mut visible, mut found, mut from_layout) = (0, 0, 0);
+    for lens in [Lens::Pinhole, Lens::Radtan, Lens::Equidistant] {
+        let row = run_cell(&cell(true, lens, 4), 11);
+        assert_eq!(row.wrong_id, 0, "{row:?}");
+        assert!(row.corner_rms_px <= 0.05, "{row:?}");
+        visible += row.visible;
+        found += row.found;
+        from_layout += row.from_layout;
+    }
+    assert!(found as f64 >= 0.995 * visible as f64, "{found}/{visible}");
+    assert!(from_layout > 0, "the layout stage never contributed");
+}
+
+/// The C detector's corners, after the one ½-px convention fix, are unbiased: their mean
+/// signed error on clean single tags is far below the ½ px the fix removes.
+#[test]
+fn quad_detector_corners_follow_the_pixel_centre_convention() {
+    let (mut sum, mut n) = (Vec2::zeros(), 0);
+    for i in 0..12 {
+        let s = scene(&SceneParams {
+            grid: false,
+            tag_px: 60.0 + 10.0 * i as f64,
+            obliquity_deg: 0.0,
+            lens: Lens::Pinhole,
+            width: 640,
+            height: 480,
+            render: RenderOptions {
+                noise_sigma: 0.0,
+                ..Default::default()
+            },
+            seed: 50 + i,
+        });
+        let found = quads::detect(&Gray::from_luma8(&s.image), &Default::default()).unwrap();
+        for c in found {
+            for (got, truth) in c.corners.iter().zip(&s.truth[&c.id]) {
+                sum += got - truth;
+                n += 1;
+            }
+        }
+    }
+    assert!(n >= 40);
+    let mean = sum / n as f64;
+    assert!(mean.norm() < 0.1, "mean corner offset {mean:?}");
+}
+
+/// No tag in 100 images of noise, gradients, checkerboards and text-like blocks.
+#[test]
+fn no_detections_without_tags() {
+    use rand::{Rng, SeedableRng};
+    let targets = vec![TargetSpec::Apriltags {
+        id: "tags".into(),
+        tag_size: 0.1,
+        ids: None,
+    }];
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
+    for i in 0..100u32 {
+        let (w, h) = (480u32, 360u32);
+        let kind = i % 4;
+        let cell = rng.gen_range(6..40);
+        let seeds: Vec<u8> = (0..4096).map(|_| rng.gen()).collect();
+        let img = image::GrayImage::from_fn(w, h, |x, y| {
+            let v = match kind {
+                0 => seeds[((x * 31 + y * 17) % 4096) as usize] as u32,
+                1 => (x * 255 / w + y * 64 / h) % 256,
+                2 => 30 + 190 * (((x / cell) + (y / cell)) % 2),
+                // "Text": random dark blocks in lines on white.
+                _ => {
+                    let line = y / (cell + 4);
+                    let glyph = x / (cell / 2 + 2);
+                    let on = seeds[((line * 97 + glyph * 13) % 4096) as usize] > 140
+                        && y % (cell + 4) < cell;
+                    if on {
+                        25
+                    } else {
+                        230
+                    }
+                }
+            };
+            image::Luma([v.min(255) as u8])
+        });
+        let d = detect_tags(
+            &Gray::from_luma8(&img),
+            &targets,
+            None,
+            &DetectOptions::default(),
+        )
+        .unwrap();
+        assert!(d.tags.is_empty(), "image {i} (kind {kind}): {:?}", d.tags);
+    }
+}
+
+/// 16-bit and colour images give the same corners as the 8-bit grey original.
+#[test]
+fn sixteen_bit_and_colour_images_detect_alike() {
+    let s = scene(&SceneParams {
+        grid: false,
+        tag_px: 80.0,
+        obliquity_deg: 30.0,
+        lens: Lens::Pinhole,
+        width: 640,
+        height: 480,
+        render: RenderOptions::default(),
+        seed: 3,
+    });
+    let base = detect_tags(
+        &Gray::from_luma8(&s.image),
+        &s.targets,
+        Some(&s.camera),
+        &Default::default(),
+    )
+    .unwrap();
+    let wide = image::DynamicImage::ImageLuma16(image::ImageBuffer::from_fn(640, 480, |x, y| {
+        image::Luma([s.image.get_pixel(x, y)[0] as u16 * 257])
+    }));
+    let rgb = image::DynamicImage::ImageLuma8(s.image.clone()).to_rgb8();
+    for img in [wide, image::DynamicImage::ImageRgb8(rgb)] {
+        let d = detect_tags(
+            &Gray::from_dynamic(&img),
+            &s.targets,
+            Some(&s.camera),
+            &Default::default(),
+        )
+        .unwrap();
+        assert_eq!(d.tags.len(), base.tags.len());
+        for (a, b) in d.tags.iter().zip(&base.tags) {
+            for k in 0..4 {
+                let e = ((a.corners[k][0] - b.corners[k][0]).powi(2)
+                    + (a.corners[k][1] - b.corners[k][1]).powi(2))
+                .sqrt();
+                assert!(e < 0.02, "corner {k} moved {e} px");
+            }
+        }
+    }
+}
+
+// ---- Sessions of images, end to end ------------------------------------------------
+
+const TAG: f64 = 0.08;
+
+fn grid_target(id: &str, first_id: u32) -> serde_json::Value {
+    serde_json::json!({"id": id, "type": "aprilgrid", "rows": 6, "cols": 6,
+        "tag_size": TAG, "tag_spacing": 0.3, "first_id": first_id})
+}
+
+/// A two-camera rig (front, and rear looking backwards 0.5 m behind) moving in 3D
+/// between two AprilGrids, one in front and one behind; 8 frames of 640×480 images.
+/// Returns the session path and the true rig_from_rear.
+fn image_session(dir: &std::path::Path) -> (std::path::PathBuf, Pose) {
+    let cam = Camera::pinhole(520.0, 520.0, 319.5, 239.5, 640, 480);
+    let rig_from_rear = Pose::new(
+        so3::exp(&Vec3::new(0.0, std::f64::consts::PI, 0.0))
+            * so3::exp(&Vec3::new(0.05, 0.0, 0.02)),
+        Vec3::new(0.2, -0.05, -0.5),
+    );
+    let side = 6.0 * 1.3 * TAG - 0.3 * TAG;
+    // Boards: front at z = +1.0 facing back, rear at z = −1.6 facing forward.
+    let flip = nalgebra::Matrix3::from_diagonal(&Vec3::new(1.0, -1.0, -1.0));
+    let world_from_front = Pose::new(flip, Vec3::new(-side / 2.0, side / 2.0, 1.0));
+    let back = nalgebra::Matrix3::from_diagonal(&Vec3::new(-1.0, -1.0, 1.0));
+    let world_from_rear_board = Pose::new(back, Vec3::new(0.2 + side / 2.0, side / 2.0, -1.6));
+    let layouts = [
+        rigcal::detect::board::GridLayout {
+            rows: 6,
+            cols: 6,
+            tag_size: TAG,
+            spacing: 0.3,
+            first_id: 0,
+        },
+        rigcal::detect::board::GridLayout {
+            rows: 6,
+            cols: 6,
+            tag_size: TAG,
+            spacing: 0.3,
+            first_id: 36,
+        },
+    ];
+    let mut frames = Vec::new();
+    for f in 0..8 {
+        let a = f as f64;
+        let world_from_rig = Pose::new(
+            so3::exp(&Vec3::new(
+                0.12 * (a * 1.3).sin(),
+                0.15 * (a * 0.7).cos(),
+                0.2 * (a * 0.9).sin(),
+            )),
+            Vec3::new(
+                0.08 * (a * 1.1).cos(),
+                0.06 * (a * 0.8).sin(),
+                0.1 * (a * 0.5).sin(),
+            ),
+        );
+        let mut images = serde_json::Map::new();
+        for (ci, (name, rig_from_cam)) in [("front", Pose::identity()), ("rear", rig_from_rear)]
+            .into_iter()
+            .enumerate()
+        {
+            let board = if ci == 0 {
+                world_from_front
+            } else {
+                world_from_rear_board
+            };
+            let cam_from_board = (world_from_rig * rig_from_cam).inverse() * board;
+            let layout = layouts[ci];
+            let img = render(
+                &cam,
+                &cam_from_board,
+                &|x, y| layout.shade(x, y),
+                &RenderOptions {
+                    seed: f * 2 + ci as u64,
+                    ..Default::default()
+                },
+            );
+            let file = format!("{name}_{f}.png");
+            img.save(dir.join(&file)).unwrap();
+            images.insert(name.into(), file.into());
+        }
+        frames.push(serde_json::json!({"index": f, "images": images}));
+    }
+    let camera = |id: &str| {
+        serde_json::json!({"id": id, "model": "pinhole", "width": 640, "height": 480,
+            "intrinsics": {"fx": 520.0, "fy": 520.0, "cx": 319.5, "cy": 239.5}})
+    };
+    let session = serde_json::json!({
+        "version": 1, "method": "motion", "reference_camera": "front",
+        "cameras": [camera("front"), camera("rear")],
+        "targets": [grid_target("front_board", 0), grid_target("rear_board", 36)],
+        "frames": frames,
+    });
+    let path = dir.join("session.json");
+    std::fs::write(&path, serde_json::to_vec_pretty(&session).unwrap()).unwrap();
+    (path, rig_from_rear)
+}
+
+fn calibrate(path: &std::path::Path) -> serde_json::Value {
+    let out = Command::new(env!("CARGO_BIN_EXE_rigcal"))
+        .arg("calibrate")
+        .arg(path)
+        .output()
+        .unwrap();
+    serde_json::from_slice(&out.stdout).unwrap_or_else(|e| {
+        panic!(
+            "{e}: {}{}",
+            String::from_utf8_lossy(&out.stdout),
+            String::from_utf8_lossy(&out.stderr)
+        )
+    })
+}
+
+fn rear_error(doc: &serde_json::Value, truth: &Pose) -> (f64, f64) {
+    let ext = doc["extrinsics"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|e| e["camera"] == "rear")
+        .expect("rear extrinsic");
+    let m: [[f64; 4]; 4] = serde_json::from_value(ext["ref_from_cam"].clone()).unwrap();
+    let rot = nalgebra::Matrix3::from_fn(|r, c| m[r][c]);
+    let t = Vec3::new(m[0][3], m[1][3], m[2][3]);
+    (
+        (t - truth.trans).norm(),
+        so3::angle_between(&rot, &truth.rot).to_degrees(),
+    )
+}
+
+/// Images in, extrinsics out: the detection stage finds both boards in all 16 images
+/// and the rig is recovered to millimetres.
+#[test]
+fn a_session_of_images_calibrates_through_detection() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, truth) = image_session(dir.path());
+    let doc = calibrate(&path);
+    assert_eq!(doc["status"], "succeeded", "{doc:#}");
+    let det = &doc["detection"];
+    assert_eq!(det["images_total"], 16);
+    assert_eq!(det["images_skipped"], 0);
+    assert!(det["points_total"].as_u64().unwrap() >= 16 * 100, "{det:#}");
+    assert_eq!(doc["stages"][0]["name"], "detection");
+    let (dt, dr) = rear_error(&doc, &truth);
+    assert!(dt < 0.003 && dr < 0.05, "rear off by {dt} m, {dr}°");
+}
+
+/// A truncated image and a text file among the images: both skipped with their reason,
+/// the rest still calibrates.
+#[test]
+fn bad_images_are_skipped_and_reported() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, truth) = image_session(dir.path());
+    let png = std::fs::read(dir.path().join("rear_3.png")).unwrap();
+    std::fs::write(dir.path().join("rear_3.png"), &png[..png.len() / 2]).unwrap();
+    std::fs::write(dir.path().join("front_5.png"), b"not an image").unwrap();
+    let doc = calibrate(&path);
+    let det = &doc["detection"];
+    assert_eq!(det["images_skipped"], 2, "{det:#}");
+    let skipped: Vec<&serde_json::Value> = det["images"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|i| i.get("error").is_some())
+        .collect();
+    let fields: Vec<&str> = skipped
+        .iter()
+        .map(|i| i["field"].as_str().unwrap())
+        .collect();
+    assert!(fields.contains(&"frames[3].images.rear"), "{fields:?}");
+    assert!(fields.contains(&"frames[5].images.front"), "{fields:?}");
+    assert!(skipped
+        .iter()
+        .all(|i| i["error"].as_str().unwrap().starts_with("expected ")));
+    assert_ne!(doc["status"], "failed", "{doc:#}");
+    let (dt, dr) = rear_error(&doc, &truth);
+    assert!(dt < 0.005 && dr < 0.1, "rear off by {dt} m, {dr}°");
+}
