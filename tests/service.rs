@@ -342,7 +342,7 @@ async fn images_upload_idempotently_and_every_bad_image_is_refused_without_damag
 }
 
 #[tokio::test]
-async fn a_tar_archive_creates_a_whole_session_and_the_job_reports_missing_detection() {
+async fn a_tar_archive_creates_a_whole_session_and_the_job_runs_detection_first() {
     let dir = tempfile::tempdir().unwrap();
     let key = api_key(dir.path(), "acme");
     let s = Server::start(dir.path(), &["--workers", "1"]);
@@ -378,9 +378,10 @@ async fn a_tar_archive_creates_a_whole_session_and_the_job_reports_missing_detec
     assert_eq!(v["images_received"], 2);
     let job = submit(&c, &s, v["id"].as_str().unwrap()).await;
     let done = wait_job(&c, &s, job["id"].as_str().unwrap(), MIN).await;
-    // This build calibrates from detections only: said plainly, not solved from nothing.
-    assert_eq!(done["status"], "failed");
-    assert_eq!(done["error"]["code"], "detection_unavailable");
+    // The images are gradients with no tag: detection runs, finds nothing, and the job
+    // says which camera saw nothing rather than solving from nothing.
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "camera_not_observed", "{done}");
     // A bad archive: an image of the wrong size refuses the whole archive, no session.
     let mut bad = Vec::new();
     {
