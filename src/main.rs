@@ -505,7 +505,8 @@ fn detect_images(
     target: &std::path::Path,
     camera: Option<&std::path::Path>,
 ) -> Result<i32> {
-    use rigcal::detect::{detect_tags, gray::Gray, DetectOptions};
+    use rigcal::detect::{detect_tags, DetectOptions};
+    use rigcal::pipeline::detection::{decode_gray, DEFAULT_MAX_IMAGE_PIXELS};
     use rigcal::session::{camera_from_spec, CameraSpec, TargetSpec};
     let text = std::fs::read(target).with_context(|| format!("reading {}", target.display()))?;
     let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
@@ -528,20 +529,9 @@ fn detect_images(
     for path in images {
         let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
         let size = camera.as_ref().map(|c| (c.width, c.height));
-        let result = rigcal::imageio::decode(
-            &bytes,
-            size,
-            rigcal::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
-        )
-        .map_err(|e| format!("expected {e}"))
-        .and_then(|(_, img)| {
+        let result = decode_gray(&bytes, size, DEFAULT_MAX_IMAGE_PIXELS).and_then(|gray| {
             let start = std::time::Instant::now();
-            let d = detect_tags(
-                &Gray::from_dynamic(&img),
-                &targets,
-                camera.as_ref(),
-                &DetectOptions::default(),
-            )?;
+            let d = detect_tags(&gray, &targets, camera.as_ref(), &DetectOptions::default())?;
             Ok((d, start.elapsed().as_secs_f64() * 1e3))
         });
         out.push(match result {

@@ -93,7 +93,7 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
                     }
                 }
                 // A tag partly out of view is not in the truth; any other id is wrong.
-                None if tag_in_print(&s, tag.id, cell.grid) => {}
+                None if tag_in_print(&s, tag.id) => {}
                 None => row.wrong_id += 1,
             }
         }
@@ -139,19 +139,11 @@ pub fn cell_params(cell: &Cell, i: usize, seed: u64) -> SceneParams {
 }
 
 /// Is `id` printed in the scene (possibly partly out of view)?
-fn tag_in_print(s: &crate::synth::tagscene::TagScene, id: u32, grid: bool) -> bool {
-    match (&s.targets[0], grid) {
-        (
-            crate::session::TargetSpec::Aprilgrid {
-                rows,
-                cols,
-                first_id,
-                ..
-            },
-            true,
-        ) => id >= *first_id && id < first_id + rows * cols,
-        _ => false,
-    }
+fn tag_in_print(s: &crate::synth::tagscene::TagScene, id: u32) -> bool {
+    s.targets
+        .iter()
+        .filter_map(crate::detect::board::GridLayout::of)
+        .any(|g| g.cell_of(id).is_some())
 }
 
 /// The study of issue 3: single tags and 6×6 AprilGrids, 24-200 px, up to 60°, pinhole

@@ -86,8 +86,8 @@ fn height_connected(session: &Session, traj: &Trajectories) -> BTreeSet<usize> {
 /// Run the capture check. Never panics on input; a session without usable detections
 /// gets `insufficient` with the reason.
 pub fn capture_check(session: &Session) -> CaptureCheck {
-    if session.vanishing.is_some() {
-        return ring_check(session);
+    if let Some(input) = &session.vanishing {
+        return ring_check(session, input);
     }
     let t0 = Instant::now();
     let nc = session.cameras.len();
@@ -313,10 +313,9 @@ pub fn capture_check(session: &Session) -> CaptureCheck {
 /// The vanishing method's check: the solve itself takes a fraction of a second, so the
 /// check runs it and reports what it found (lines per camera, ring links and closure,
 /// ill-conditioned vanishing points) without the extrinsics.
-fn ring_check(session: &Session) -> CaptureCheck {
+fn ring_check(session: &Session, input: &crate::session::VanishingInput) -> CaptureCheck {
     use super::vanishing::{solve, VanishingOptions};
     let t0 = Instant::now();
-    let input = session.vanishing.as_ref().expect("vanishing session");
     let (solution, findings) = solve(
         session,
         &VanishingOptions {

@@ -3,7 +3,7 @@
 //! One place for the geometry of the print, shared by the detector (which predicts and
 //! verifies tags through it), the renderer (which draws it) and the session resolver's
 //! corner numbering (`tag:<id>:<k>`, counter-clockwise from the tag's bottom-left, board
-//! `x` right and `y` up as printed — the same as `session::validate`).
+//! `x` right and `y` up as printed), which `session::validate` resolves through here.
 
 use super::tag36h11::{BIT_CELLS, CODES, WIDTH_AT_BORDER};
 use crate::geometry::Vec2;
@@ -55,6 +55,27 @@ pub struct GridLayout {
 }
 
 impl GridLayout {
+    /// The layout of an `aprilgrid` target; `None` for other kinds.
+    pub fn of(target: &crate::session::TargetSpec) -> Option<GridLayout> {
+        match *target {
+            crate::session::TargetSpec::Aprilgrid {
+                rows,
+                cols,
+                tag_size,
+                tag_spacing,
+                first_id,
+                ..
+            } => Some(GridLayout {
+                rows,
+                cols,
+                tag_size,
+                spacing: tag_spacing,
+                first_id,
+            }),
+            _ => None,
+        }
+    }
+
     pub fn pitch(&self) -> f64 {
         self.tag_size * (1.0 + self.spacing)
     }

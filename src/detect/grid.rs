@@ -88,18 +88,10 @@ pub fn complete(
     max_hamming: u32,
     rejected: &mut Vec<(u32, String)>,
 ) -> BTreeMap<u32, Found> {
-    let to_plane = |c: &[Vec2; 4]| -> Option<[Vec2; 4]> {
-        Some([
-            lens.to_plane(c[0])?,
-            lens.to_plane(c[1])?,
-            lens.to_plane(c[2])?,
-            lens.to_plane(c[3])?,
-        ])
-    };
     let mut found = BTreeMap::new();
     let mut plane = BTreeMap::new();
     for (id, f) in seeds {
-        if let Some(p) = to_plane(&f.refined.corners) {
+        if let Some(p) = lens.quad_to_plane(&f.refined.corners) {
             plane.insert(id, p);
             found.insert(id, f);
         }
@@ -169,7 +161,7 @@ pub fn complete(
             };
             let strong = reading.margin >= (0.3 * refined.contrast).max(10.0);
             if reading.hamming <= max_hamming && reading.border_black >= 26 && strong {
-                if let Some(p) = to_plane(&refined.corners) {
+                if let Some(p) = lens.quad_to_plane(&refined.corners) {
                     plane.insert(id, p);
                     found.insert(
                         id,

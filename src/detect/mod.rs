@@ -93,23 +93,7 @@ fn wanted(targets: &[TargetSpec]) -> Vec<Wanted<'_>> {
     targets
         .iter()
         .filter_map(|t| match t {
-            TargetSpec::Aprilgrid {
-                id,
-                rows,
-                cols,
-                tag_size,
-                tag_spacing,
-                first_id,
-            } => Some(Wanted::Grid(
-                id,
-                GridLayout {
-                    rows: *rows,
-                    cols: *cols,
-                    tag_size: *tag_size,
-                    spacing: *tag_spacing,
-                    first_id: *first_id,
-                },
-            )),
+            TargetSpec::Aprilgrid { id, .. } => Some(Wanted::Grid(id, GridLayout::of(t)?)),
             TargetSpec::Apriltags { id, ids, .. } => Some(Wanted::Tags(id, ids.as_deref())),
             _ => None,
         })

@@ -26,6 +26,16 @@ impl Lens<'_> {
         }
     }
 
+    /// A quad's corners in the plane.
+    pub fn quad_to_plane(&self, c: &[Vec2; 4]) -> Option<[Vec2; 4]> {
+        Some([
+            self.to_plane(c[0])?,
+            self.to_plane(c[1])?,
+            self.to_plane(c[2])?,
+            self.to_plane(c[3])?,
+        ])
+    }
+
     pub fn to_pixel(&self, q: Vec2) -> Option<Vec2> {
         match self.0 {
             Some(c) => c.project(&Vec3::new(q.x, q.y, 1.0)),
@@ -131,10 +141,7 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64,
 /// frame (any consistent order round the quad works); `reach` (px) is how far the true
 /// sides may be from the given ones.
 pub fn refine_quad(img: &Gray, corners: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Refined> {
-    let mut plane = [Vec2::zeros(); 4];
-    for (k, c) in corners.iter().enumerate() {
-        plane[k] = lens.to_plane(*c)?;
-    }
+    let mut plane = lens.quad_to_plane(corners)?;
     let mut out = None;
     let mut reach = reach;
     for _pass in 0..2 {

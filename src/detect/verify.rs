@@ -22,10 +22,7 @@ pub struct Reading {
 /// compare them with the code of `id`.
 pub fn read_tag(img: &Gray, corners: &[Vec2; 4], lens: Lens, id: u32) -> Option<Reading> {
     let code = *CODES.get(id as usize)?;
-    let plane: Vec<Vec2> = corners
-        .iter()
-        .map(|c| lens.to_plane(*c))
-        .collect::<Option<_>>()?;
+    let plane = lens.quad_to_plane(corners)?;
     // Tag cell coordinates: (0, 0) top-left, (8, 8) bottom-right as printed; corner k=0
     // (bottom-left) is (0, 8).
     let n = WIDTH_AT_BORDER as f64;

@@ -8,7 +8,7 @@ use super::{enter, Cancelled, Progress};
 use crate::detect::{detect_tags, gray::Gray, DetectOptions};
 use crate::imageio;
 use crate::result::{DetectionReport, ImageReport};
-use crate::session::{from_manifest, image_slots, ImageSlot, ObservationSpec, Session};
+use crate::session::{from_manifest, image_slots, ImageSlot, ObservationSpec, Session, TargetSpec};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -48,7 +48,6 @@ impl ImageSource for NoImages {
 
 /// Does the session have AprilTag targets to look for?
 fn has_tag_targets(session: &Session) -> bool {
-    use crate::session::TargetSpec;
     session.manifest.targets.iter().any(|t| {
         matches!(
             t,
@@ -67,9 +66,8 @@ pub fn detect_session(
 ) -> Result<(Session, Option<DetectionReport>), Cancelled> {
     let pending: Vec<(usize, ImageSlot)> = image_slots(session)
         .into_iter()
-        .filter(|s| s.field.starts_with("frames["))
         .filter_map(|s| {
-            let fi = frame_position(&s)?;
+            let fi = s.frame_pos?;
             let f = &session.manifest.frames[fi];
             let done = f.observations.get(&s.camera).is_some_and(|o| !o.is_empty());
             (!done).then_some((fi, s))
@@ -149,9 +147,16 @@ pub fn detect_session(
     Ok((detected, Some(report)))
 }
 
-fn frame_position(slot: &ImageSlot) -> Option<usize> {
-    let inner = slot.field.strip_prefix("frames[")?;
-    inner[..inner.find(']')?].parse().ok()
+/// Decode an image for detection, with the header-first checks of uploads (format,
+/// `expected` size, pixel budget, complete file). Errors read as "expected …".
+pub fn decode_gray(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+    max_pixels: u64,
+) -> Result<Gray, String> {
+    let (_, img) =
+        imageio::decode(bytes, expected, max_pixels).map_err(|e| format!("expected {e}"))?;
+    Ok(Gray::from_dynamic(&img))
 }
 
 /// What one image gave: its report line and its observations.
@@ -177,9 +182,7 @@ fn detect_slot(
         .camera_index(&slot.camera)
         .map(|i| &session.cameras[i].camera);
     let outcome = source.read(slot).and_then(|bytes| {
-        let (_, img) = imageio::decode(&bytes, Some(slot.size), source.max_pixels())
-            .map_err(|e| format!("expected {e}"))?;
-        let gray = Gray::from_dynamic(&img);
+        let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
         detect_tags(
             &gray,
             &session.manifest.targets,

@@ -9,6 +9,9 @@ use super::Session;
 pub struct ImageSlot {
     pub camera: String,
     pub frame: i64,
+    /// Position in `frames[]` (`None` for ring images of the vanishing method).
+    #[serde(skip)]
+    pub frame_pos: Option<usize>,
     pub path: String,
     /// The manifest field naming it (`frames[2].images.front`, `ring[3].image`).
     pub field: String,
@@ -30,6 +33,7 @@ pub fn image_slots(session: &Session) -> Vec<ImageSlot> {
             out.push(ImageSlot {
                 camera: cam.clone(),
                 frame: f.index,
+                frame_pos: Some(fi),
                 path: path.clone(),
                 field: format!("frames[{fi}].images.{cam}"),
                 size: (c.width, c.height),
@@ -42,6 +46,7 @@ pub fn image_slots(session: &Session) -> Vec<ImageSlot> {
                 out.push(ImageSlot {
                     camera: v.auxiliary.id.clone(),
                     frame: r.index,
+                    frame_pos: None,
                     path: path.clone(),
                     field: format!("ring[{ri}].image"),
                     size: (v.auxiliary.camera.width, v.auxiliary.camera.height),

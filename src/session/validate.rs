@@ -3,6 +3,7 @@
 use super::lines::{validate_vanishing, VanishingInput};
 use super::raw::*;
 use super::InputError;
+use crate::detect::board::{tag_corner, GridLayout};
 use crate::geometry::{Camera, CameraModel, Vec2, Vec3};
 use std::collections::{BTreeMap, HashMap, HashSet};
 
@@ -251,11 +252,9 @@ fn parse_tag_point(id: &str) -> Option<(u32, usize)> {
     (it.next().is_none() && corner < 4).then_some((tag, corner))
 }
 
-/// Corner `c` of a square tag of side `s` whose bottom-left corner is at `(x0, y0)`:
-/// counter-clockwise from bottom-left, as the AprilTag library orders them.
-fn tag_corner(x0: f64, y0: f64, s: f64, c: usize) -> Vec3 {
-    let (dx, dy) = [(0.0, 0.0), (s, 0.0), (s, s), (0.0, s)][c];
-    Vec3::new(x0 + dx, y0 + dy, 0.0)
+/// A 2D board point on the target plane `z = 0`.
+fn on_plane(p: crate::geometry::Vec2) -> Vec3 {
+    Vec3::new(p.x, p.y, 0.0)
 }
 
 /// Resolve a point id against the targets: a body point if a target defines it, free otherwise.
@@ -273,32 +272,22 @@ pub fn resolve_points(
         let mut kind = PointKind::Free;
         for (ti, t) in targets.iter().enumerate() {
             match t {
-                TargetSpec::Aprilgrid {
-                    id: name,
-                    rows,
-                    cols,
-                    tag_size,
-                    tag_spacing,
-                    first_id,
-                } => {
-                    if let Some((tag, c)) = parse_tag_point(&id) {
-                        if tag >= *first_id && tag < first_id + rows * cols {
-                            let k = tag - first_id;
-                            let (r, col) = ((k / cols) as f64, (k % cols) as f64);
-                            let pitch = tag_size * (1.0 + tag_spacing);
-                            let body = *target_body.entry(ti).or_insert_with(|| {
-                                out.bodies.push(Body {
-                                    name: name.clone(),
-                                    planar: true,
-                                });
-                                out.bodies.len() - 1
+                TargetSpec::Aprilgrid { id: name, .. } => {
+                    let corner = parse_tag_point(&id)
+                        .and_then(|(tag, c)| GridLayout::of(t).and_then(|g| g.corner(tag, c)));
+                    if let Some(local) = corner {
+                        let body = *target_body.entry(ti).or_insert_with(|| {
+                            out.bodies.push(Body {
+                                name: name.clone(),
+                                planar: true,
                             });
-                            kind = PointKind::Body {
-                                body,
-                                local: tag_corner(col * pitch, r * pitch, *tag_size, c),
-                            };
-                            break;
-                        }
+                            out.bodies.len() - 1
+                        });
+                        kind = PointKind::Body {
+                            body,
+                            local: on_plane(local),
+                        };
+                        break;
                     }
                 }
                 TargetSpec::Apriltags {
@@ -318,7 +307,9 @@ pub fn resolve_points(
                             let h = tag_size / 2.0;
                             kind = PointKind::Body {
                                 body,
-                                local: tag_corner(-h, -h, *tag_size, c),
+                                local: on_plane(
+                                    tag_corner(*tag_size, c) - crate::geometry::Vec2::new(h, h),
+                                ),
                             };
                             break;
                         }
