@@ -10,6 +10,7 @@
 pub mod api;
 pub mod bench;
 pub mod calib;
+pub mod dashboard;
 pub mod demo;
 pub mod detect;
 pub mod export;

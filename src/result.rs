@@ -323,9 +323,21 @@ pub struct ResultDocument {
     #[serde(skip_serializing_if = "Option::is_none")]
     pub solver: Option<SolverReport>,
     pub stages: Vec<Stage>,
+    /// Motion method: the rig (reference camera) at every frame the rig bundle adjustment
+    /// used, in the rig frame of the first of them — the drive the dashboard draws.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub trajectory: Vec<RigPose>,
     /// Sessions of images: what detection found in each image, and the skipped ones.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub detection: Option<DetectionReport>,
+}
+
+/// The rig at one frame: `first_rig_from_rig` as translation (m) and quaternion.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct RigPose {
+    pub frame: i64,
+    pub translation: [f64; 3],
+    pub quaternion_wxyz: [f64; 4],
 }
 
 /// The detection stage's account of one image.

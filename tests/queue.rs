@@ -1,6 +1,7 @@
 //! Queue semantics on a real SQLite database: atomic claims, leases, exactly-once
 //! completion, retry with backoff, attempt limits, cancellation.
 
+use rigcal::jobs::acceptance::ResultSummary;
 use rigcal::jobs::queue::Queue;
 use rigcal::store::Store;
 use serde_json::json;
@@ -61,15 +62,25 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .unwrap()
         .is_none());
     assert!(!q
-        .complete(&job.id, "a", "succeeded", "{}", None, None)
+        .complete(&job.id, "a", "succeeded", "{}", &ResultSummary::default(), None)
         .await
         .unwrap());
     assert!(q
-        .complete(&job.id, "b", "succeeded", "{\"x\":1}", Some(0.3), None)
+        .complete(
+            &job.id,
+            "b",
+            "succeeded",
+            "{\"x\":1}",
+            &ResultSummary {
+                residual_rms_px: Some(0.3),
+                ..Default::default()
+            },
+            None,
+        )
         .await
         .unwrap());
     assert!(!q
-        .complete(&job.id, "b", "succeeded", "{}", None, None)
+        .complete(&job.id, "b", "succeeded", "{}", &ResultSummary::default(), None)
         .await
         .unwrap());
     assert_eq!(

@@ -348,24 +348,14 @@ async fn a_tar_archive_creates_a_whole_session_and_the_job_runs_detection_first(
     let s = Server::start(dir.path(), &["--workers", "1"]);
     let c = client(&key);
     let manifest = image_session(1, 32, 24);
-    let mut tarred = Vec::new();
-    {
-        let mut t = tar::Builder::new(&mut tarred);
-        let mut add = |name: &str, bytes: &[u8]| {
-            let mut h = tar::Header::new_gnu();
-            h.set_size(bytes.len() as u64);
-            h.set_mode(0o644);
-            h.set_cksum();
-            t.append_data(&mut h, name, bytes).unwrap();
-        };
-        add(
+    let tarred = tar_archive(&[
+        (
             "capture/session.json",
-            &serde_json::to_vec(&manifest).unwrap(),
-        );
-        add("capture/front/0000.png", &png(32, 24, 1));
-        add("capture/rear/0000.png", &png(32, 24, 2));
-        t.finish().unwrap();
-    }
+            serde_json::to_vec(&manifest).unwrap(),
+        ),
+        ("capture/front/0000.png", png(32, 24, 1)),
+        ("capture/rear/0000.png", png(32, 24, 2)),
+    ]);
     let r = c
         .post(s.url("/v1/sessions"))
         .header("content-type", "application/x-tar")
@@ -383,22 +373,11 @@ async fn a_tar_archive_creates_a_whole_session_and_the_job_runs_detection_first(
     assert_eq!(done["status"], "failed", "{done}");
     assert_eq!(done["error"]["code"], "camera_not_observed", "{done}");
     // A bad archive: an image of the wrong size refuses the whole archive, no session.
-    let mut bad = Vec::new();
-    {
-        let mut t = tar::Builder::new(&mut bad);
-        for (name, bytes) in [
-            ("session.json", serde_json::to_vec(&manifest).unwrap()),
-            ("front/0000.png", png(32, 24, 1)),
-            ("rear/0000.png", png(31, 24, 1)),
-        ] {
-            let mut h = tar::Header::new_gnu();
-            h.set_size(bytes.len() as u64);
-            h.set_mode(0o644);
-            h.set_cksum();
-            t.append_data(&mut h, name, bytes.as_slice()).unwrap();
-        }
-        t.finish().unwrap();
-    }
+    let bad = tar_archive(&[
+        ("session.json", serde_json::to_vec(&manifest).unwrap()),
+        ("front/0000.png", png(32, 24, 1)),
+        ("rear/0000.png", png(31, 24, 1)),
+    ]);
     let r = c
         .post(s.url("/v1/sessions"))
         .header("content-type", "application/x-tar")

@@ -4,7 +4,9 @@ use super::auth::AuthTenant;
 use super::error::ApiError;
 use super::AppState;
 use crate::export::{render, Format};
+use crate::jobs::acceptance::judge;
 use crate::jobs::queue::{JobFilter, JobRow, JobView, STATUSES};
+use crate::store::Tenant;
 use crate::jobs::JobOptions;
 use crate::pipeline::undetected_images;
 use crate::result::ResultDocument;
@@ -30,8 +32,9 @@ struct CreateJob {
     options: Option<JobOptions>,
 }
 
-fn job_json(j: &JobRow) -> Value {
+fn job_json(j: &JobRow, tenant: &Tenant) -> Value {
     let mut v = serde_json::to_value(JobView::from(j)).unwrap_or(Value::Null);
+    v["acceptance"] = serde_json::to_value(judge(j, tenant)).unwrap_or(Value::Null);
     v["links"] = json!({
         "self": format!("/v1/jobs/{}", j.id),
         "events": format!("/v1/jobs/{}/events", j.id),
@@ -136,7 +139,7 @@ pub async fn create(
     Ok((
         StatusCode::ACCEPTED,
         [(header::LOCATION, format!("/v1/jobs/{}", job.id))],
-        Json(job_json(&job)),
+        Json(job_json(&job, &tenant)),
     )
         .into_response())
 }
@@ -221,7 +224,7 @@ pub async fn list(
     let f = parse_filter(raw.as_deref())?;
     let (rows, total) = state.queue.list(&tenant.id, &f).await?;
     Ok(Json(json!({
-        "jobs": rows.iter().map(job_json).collect::<Vec<_>>(),
+        "jobs": rows.iter().map(|j| job_json(j, &tenant)).collect::<Vec<_>>(),
         "total": total,
         "limit": f.limit,
         "offset": f.offset,
@@ -233,7 +236,10 @@ pub async fn show(
     AuthTenant(tenant): AuthTenant,
     Path(id): Path<String>,
 ) -> Result<Json<Value>, ApiError> {
-    Ok(Json(job_json(&job_or_404(&state, &tenant.id, &id).await?)))
+    Ok(Json(job_json(
+        &job_or_404(&state, &tenant.id, &id).await?,
+        &tenant,
+    )))
 }
 
 /// `DELETE /v1/jobs/{id}`: cancel (at once when queued; between stages when running).
@@ -255,7 +261,7 @@ pub async fn cancel(
         .cancel(&tenant.id, &id)
         .await?
         .ok_or_else(|| ApiError::not_found("job"))?;
-    Ok((StatusCode::ACCEPTED, Json(job_json(&job))).into_response())
+    Ok((StatusCode::ACCEPTED, Json(job_json(&job, &tenant))).into_response())
 }
 
 /// `GET /v1/jobs/{id}/events`: server-sent events, one per stored job event, resumable
@@ -302,7 +308,52 @@ pub async fn events(
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 
-async fn document(state: &AppState, tenant: &str, id: &str) -> Result<(JobRow, String), ApiError> {
+/// `GET /v1/events`: server-sent events of every job of the tenant (`job` events: the
+/// job id, status, stage, progress), from now on, or after `Last-Event-ID`. One stream
+/// keeps a whole jobs table live; it never ends by itself, only with the client or the
+/// server's shutdown.
+pub async fn tenant_events(
+    State(state): State<AppState>,
+    AuthTenant(tenant): AuthTenant,
+    headers: HeaderMap,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let resume: Option<i64> = headers
+        .get("last-event-id")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|s| s.trim().parse().ok());
+    let mut last = match resume {
+        Some(n) => n,
+        None => state.queue.last_event_id().await?,
+    };
+    let queue = state.queue.clone();
+    let mut shutdown = state.shutdown.clone();
+    let stream = async_stream::stream! {
+        // First a `ready` event carrying the cursor, so a client that loads the table
+        // after it knows it missed nothing.
+        yield Ok(Event::default().id(last.to_string()).event("ready").data(json!({"last_event_id": last}).to_string()));
+        loop {
+            if *shutdown.borrow() {
+                break;
+            }
+            let events = match queue.tenant_events_after(&tenant.id, last, 500).await {
+                Ok(e) => e,
+                Err(_) => break,
+            };
+            for e in events {
+                last = e.id;
+                let data = serde_json::to_string(&e).unwrap_or_default();
+                yield Ok(Event::default().id(e.id.to_string()).event("job").data(data));
+            }
+            tokio::select! {
+                _ = tokio::time::sleep(Duration::from_millis(250)) => {},
+                _ = shutdown.changed() => {},
+            }
+        }
+    };
+    Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+}
+
+pub(super) async fn document(state: &AppState, tenant: &str, id: &str) -> Result<(JobRow, String), ApiError> {
     let job = job_or_404(state, tenant, id).await?;
     match state.queue.result(tenant, id).await? {
         Some(doc) => Ok((job, doc)),

@@ -3,9 +3,11 @@
 
 pub mod auth;
 pub mod error;
+mod figures;
 mod jobs;
 mod ops;
 mod sessions;
+mod tenant;
 mod vehicles;
 
 use crate::jobs::queue::Queue;
@@ -60,6 +62,8 @@ pub struct AppState {
     pub queue: Queue,
     pub metrics: Arc<Metrics>,
     pub config: Arc<ServeConfig>,
+    /// Turns `true` when the server starts shutting down: endless streams end then.
+    pub shutdown: tokio::sync::watch::Receiver<bool>,
 }
 
 async fn record_latency(State(state): State<AppState>, req: Request, next: Next) -> Response {
@@ -123,6 +127,10 @@ pub fn build_app(state: AppState) -> Router {
                 .get(jobs::list),
         )
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
+        .route("/events", get(jobs::tenant_events))
+        .route("/tenant", get(tenant::show))
+        .route("/jobs/{id}/figures/{name}", get(figures::job))
+        .route("/vehicles/{vehicle_id}/drift.svg", get(figures::drift))
         .route("/jobs/{id}/events", get(jobs::events))
         .route("/jobs/{id}/result", get(jobs::result))
         .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
@@ -133,7 +141,8 @@ pub fn build_app(state: AppState) -> Router {
         .layer(DefaultBodyLimit::max(cfg.max_manifest_bytes));
     Router::new()
         .nest("/v1", v1)
-        .route("/", get(ops::index))
+        .route("/", get(crate::dashboard::index))
+        .route("/assets/{name}", get(crate::dashboard::asset))
         .route("/healthz", get(ops::healthz))
         .route("/readyz", get(ops::readyz))
         .route("/metrics", get(ops::metrics))
@@ -174,16 +183,21 @@ pub async fn start(
         .await
         .map_err(|e| anyhow::anyhow!("binding {}: {e}", config.bind))?;
     let addr: SocketAddr = listener.local_addr()?;
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
     let state = AppState {
         queue: Queue::new(store.pool.clone()),
         store,
         metrics,
         config: Arc::new(config),
+        shutdown: stop_rx,
     };
     let app = build_app(state);
     let server = async move {
         axum::serve(listener, app)
-            .with_graceful_shutdown(crate::signals::shutdown_signal())
+            .with_graceful_shutdown(async move {
+                crate::signals::shutdown_signal().await;
+                let _ = stop_tx.send(true);
+            })
             .await
     };
     Ok((addr, server))

@@ -53,22 +53,8 @@ pub async fn not_found() -> ApiError {
     ApiError::new(StatusCode::NOT_FOUND, "not-found", "no such resource")
 }
 
-pub async fn index() -> Html<&'static str> {
-    Html(concat!(
-        "<!doctype html><html lang=\"en\"><head><meta charset=\"utf-8\"><title>rigcal</title>",
-        "<meta name=\"viewport\" content=\"width=device-width, initial-scale=1\"></head><body>",
-        "<main><h1>rigcal</h1><p>Extrinsic calibration of multi-camera rigs.</p><ul>",
-        "<li><a href=\"/docs\">API reference</a></li><li><a href=\"/openapi.yaml\">OpenAPI contract</a></li>",
-        "<li><a href=\"/healthz\">Health</a></li><li><a href=\"/metrics\">Metrics</a></li></ul></main></body></html>"
-    ))
-}
+use crate::dashboard::svg::esc;
 
-fn esc(s: &str) -> String {
-    s.replace('&', "&amp;")
-        .replace('<', "&lt;")
-        .replace('>', "&gt;")
-        .replace('"', "&quot;")
-}
 
 /// The API reference as HTML, rendered once from `openapi.yaml`.
 pub fn render_docs(spec: &Value) -> String {

@@ -1,6 +1,7 @@
 //! Jobs: the queue (claim with lease, heartbeat, retry, cancel) and the worker pool that
 //! runs the pipeline off the async runtime.
 
+pub mod acceptance;
 pub mod queue;
 pub mod worker;
 

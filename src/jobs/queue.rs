@@ -6,6 +6,7 @@
 //! transition out of `running` requires the caller to still own the lease, so a job
 //! completes exactly once even if a presumed-dead worker wakes up later.
 
+use super::acceptance::ResultSummary;
 use crate::store::{now_ms, rfc3339};
 use serde::Serialize;
 use sqlx::sqlite::{SqlitePool, SqliteRow};
@@ -37,6 +38,8 @@ pub struct JobRow {
     pub error: Option<String>,
     pub lease_owner: Option<String>,
     pub residual_rms_px: Option<f64>,
+    pub worst_sigma_translation_m: Option<f64>,
+    pub worst_sigma_rotation_deg: Option<f64>,
     pub created_at: i64,
     pub started_at: Option<i64>,
     pub finished_at: Option<i64>,
@@ -64,6 +67,8 @@ fn job_from(r: &SqliteRow) -> JobRow {
         error: r.get("error"),
         lease_owner: r.get("lease_owner"),
         residual_rms_px: r.get("residual_rms_px"),
+        worst_sigma_translation_m: r.get("worst_sigma_translation_m"),
+        worst_sigma_rotation_deg: r.get("worst_sigma_rotation_deg"),
         created_at: r.get("created_at"),
         started_at: r.get("started_at"),
         finished_at: r.get("finished_at"),
@@ -85,6 +90,9 @@ pub struct JobView {
     pub options: serde_json::Value,
     pub error: Option<serde_json::Value>,
     pub residual_rms_px: Option<f64>,
+    /// Largest 1-σ over the cameras' observable extrinsic components (m, deg).
+    pub worst_sigma_translation_m: Option<f64>,
+    pub worst_sigma_rotation_deg: Option<f64>,
     pub created_at: String,
     pub started_at: Option<String>,
     pub finished_at: Option<String>,
@@ -117,6 +125,8 @@ impl From<&JobRow> for JobView {
                 .as_deref()
                 .and_then(|e| serde_json::from_str(e).ok()),
             residual_rms_px: j.residual_rms_px,
+            worst_sigma_translation_m: j.worst_sigma_translation_m,
+            worst_sigma_rotation_deg: j.worst_sigma_rotation_deg,
             created_at: rfc3339(j.created_at),
             started_at: j.started_at.map(rfc3339),
             finished_at: j.finished_at.map(rfc3339),
@@ -131,6 +141,19 @@ impl From<&JobRow> for JobView {
 #[derive(Clone, Debug, Serialize)]
 pub struct EventRow {
     pub id: i64,
+    pub at: String,
+    pub kind: String,
+    pub status: String,
+    pub stage: Option<String>,
+    pub progress: f64,
+    pub message: Option<String>,
+}
+
+/// A job event with its job, for the tenant-wide stream the dashboard listens to.
+#[derive(Clone, Debug, Serialize)]
+pub struct TenantEventRow {
+    pub id: i64,
+    pub job_id: String,
     pub at: String,
     pub kind: String,
     pub status: String,
@@ -353,15 +376,17 @@ impl Queue {
         worker: &str,
         status: &str,
         document: &str,
-        residual_rms_px: Option<f64>,
+        summary: &ResultSummary,
         error: Option<&str>,
     ) -> sqlx::Result<bool> {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
-        let n = sqlx::query("UPDATE jobs SET status = ?, progress = 1, stage = NULL, lease_owner = NULL, lease_expires_at = NULL, finished_at = ?, residual_rms_px = ?, error = ? WHERE id = ? AND lease_owner = ? AND status = 'running'")
+        let n = sqlx::query("UPDATE jobs SET status = ?, progress = 1, stage = NULL, lease_owner = NULL, lease_expires_at = NULL, finished_at = ?, residual_rms_px = ?, worst_sigma_translation_m = ?, worst_sigma_rotation_deg = ?, error = ? WHERE id = ? AND lease_owner = ? AND status = 'running'")
             .bind(status)
             .bind(now)
-            .bind(residual_rms_px)
+            .bind(summary.residual_rms_px)
+            .bind(summary.worst_sigma_translation_m)
+            .bind(summary.worst_sigma_rotation_deg)
             .bind(error)
             .bind(id)
             .bind(worker)
@@ -512,6 +537,42 @@ impl Queue {
         }
         tx.commit().await?;
         Ok(n == 1)
+    }
+
+    /// The newest event id (0 when there is none): where a new tenant stream starts.
+    pub async fn last_event_id(&self) -> sqlx::Result<i64> {
+        Ok(sqlx::query("SELECT COALESCE(MAX(id), 0) FROM job_events")
+            .fetch_one(&self.pool)
+            .await?
+            .get(0))
+    }
+
+    /// Events of any of a tenant's jobs after `after`, oldest first, at most `limit`.
+    pub async fn tenant_events_after(
+        &self,
+        tenant_id: &str,
+        after: i64,
+        limit: i64,
+    ) -> sqlx::Result<Vec<TenantEventRow>> {
+        let rows = sqlx::query("SELECT e.id, e.job_id, e.at, e.kind, e.status, e.stage, e.progress, e.message FROM job_events e JOIN jobs j ON j.id = e.job_id WHERE e.id > ? AND j.tenant_id = ? ORDER BY e.id LIMIT ?")
+            .bind(after)
+            .bind(tenant_id)
+            .bind(limit)
+            .fetch_all(&self.pool)
+            .await?;
+        Ok(rows
+            .iter()
+            .map(|r| TenantEventRow {
+                id: r.get("id"),
+                job_id: r.get("job_id"),
+                at: rfc3339(r.get("at")),
+                kind: r.get("kind"),
+                status: r.get("status"),
+                stage: r.get("stage"),
+                progress: r.get("progress"),
+                message: r.get("message"),
+            })
+            .collect())
     }
 
     pub async fn events_after(&self, id: &str, after: i64) -> sqlx::Result<Vec<EventRow>> {

@@ -236,7 +236,7 @@ async fn run_job(
                     return;
                 }
             };
-            let rms = doc.residuals.as_ref().map(|r| r.all.rms);
+            let summary = super::acceptance::ResultSummary::of(&doc);
             let error = (doc.status == crate::result::Status::Failed).then(|| {
                 let first = doc.reasons.first();
                 problem(
@@ -247,7 +247,7 @@ async fn run_job(
                 .to_string()
             });
             match queue
-                .complete(&job.id, name, status, &text, rms, error.as_deref())
+                .complete(&job.id, name, status, &text, &summary, error.as_deref())
                 .await
             {
                 Ok(true) => {

@@ -70,6 +70,28 @@ pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
     }
 }
 
+/// The rig poses of the bundle adjustment relative to the first one (frame ids, not
+/// positions in the session).
+fn rig_trajectory(session: &Session, ba: &crate::calib::rig_ba::RigBaOutput) -> Vec<RigPose> {
+    let poses = &ba.problem.world_from_rig;
+    let Some(first) = poses.first() else {
+        return vec![];
+    };
+    let first_inv = first.inverse();
+    ba.rig_frames
+        .iter()
+        .zip(poses)
+        .map(|(f, p)| {
+            let rel = first_inv * *p;
+            RigPose {
+                frame: session.frames[*f].index,
+                translation: [rel.trans.x, rel.trans.y, rel.trans.z],
+                quaternion_wxyz: so3::to_quaternion(&rel.rot),
+            }
+        })
+        .collect()
+}
+
 pub(crate) fn reason(code: &str, message: impl Into<String>, camera: Option<&str>) -> Reason {
     Reason {
         code: code.into(),
@@ -100,6 +122,7 @@ pub(crate) fn failed(
         initialisation: vec![],
         solver: None,
         stages,
+        trajectory: vec![],
         detection: None,
     }
 }
@@ -621,6 +644,7 @@ pub fn calibrate_with(
             termination: ba.summary.termination.clone(),
         }),
         stages,
+        trajectory: rig_trajectory(session, &ba),
         detection: None,
     })
 }

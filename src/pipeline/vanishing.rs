@@ -227,6 +227,7 @@ pub(super) fn calibrate(
             termination: sol.summary.termination.clone(),
         }),
         stages,
+        trajectory: vec![],
         detection: None,
     })
 }

@@ -273,3 +273,20 @@ pub async fn head_only_request(
         .unwrap_or(Value::Null);
     (status, body)
 }
+
+/// A tar archive of `(path, bytes)` entries, as a client would upload it.
+pub fn tar_archive(files: &[(&str, Vec<u8>)]) -> Vec<u8> {
+    let mut out = Vec::new();
+    {
+        let mut t = tar::Builder::new(&mut out);
+        for (name, bytes) in files {
+            let mut h = tar::Header::new_gnu();
+            h.set_size(bytes.len() as u64);
+            h.set_mode(0o644);
+            h.set_cksum();
+            t.append_data(&mut h, name, bytes.as_slice()).unwrap();
+        }
+        t.finish().unwrap();
+    }
+    out
+}

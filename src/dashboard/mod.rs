@@ -1,0 +1,99 @@
+//! The job-status dashboard served at `/`: a small page (HTML, CSS, plain JavaScript —
+//! no build step, no framework, nothing fetched from elsewhere) embedded in the binary,
+//! and the SVG figures it shows ([`svg`]).
+//!
+//! Why a page that talks to the JSON API rather than server-rendered HTML: the API key
+//! lives in the browser's session storage (the issue's "asks once, keeps it in the
+//! browser session"), so every request must carry `Authorization`, which a plain
+//! navigation cannot. The page is therefore one more API client and shows exactly what
+//! the API returns; all numbers come from the result document, all figures from [`svg`].
+
+pub mod svg;
+
+use axum::extract::Path;
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::response::{IntoResponse, Response};
+
+struct Asset {
+    name: &'static str,
+    content_type: &'static str,
+    body: &'static str,
+}
+
+const INDEX: &str = include_str!("assets/index.html");
+
+const ASSETS: [Asset; 3] = [
+    Asset {
+        name: "app.js",
+        content_type: "text/javascript; charset=utf-8",
+        body: include_str!("assets/app.js"),
+    },
+    Asset {
+        name: "app.css",
+        content_type: "text/css; charset=utf-8",
+        body: include_str!("assets/app.css"),
+    },
+    Asset {
+        name: "favicon.svg",
+        content_type: "image/svg+xml",
+        body: include_str!("assets/favicon.svg"),
+    },
+];
+
+/// Same-origin only: scripts, styles, images and connections to this server; no inline
+/// script, no framing. The figures are inserted as markup from our own API.
+const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; form-action 'self'; base-uri 'none'; frame-ancestors 'none'";
+
+/// Weak validator: the build's version and the asset's length and checksum.
+fn etag(body: &str) -> String {
+    let sum = body
+        .bytes()
+        .fold(0xcbf29ce484222325u64, |h, b| (h ^ b as u64).wrapping_mul(0x100000001b3));
+    format!("W/\"{}-{:x}\"", env!("CARGO_PKG_VERSION"), sum)
+}
+
+fn serve(headers: &HeaderMap, content_type: &'static str, body: &'static str) -> Response {
+    let tag = etag(body);
+    let fresh = headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == tag));
+    let mut resp = if fresh {
+        StatusCode::NOT_MODIFIED.into_response()
+    } else {
+        ([(header::CONTENT_TYPE, content_type)], body).into_response()
+    };
+    let h = resp.headers_mut();
+    h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
+    h.insert(header::CONTENT_SECURITY_POLICY, HeaderValue::from_static(CSP));
+    h.insert(
+        header::X_CONTENT_TYPE_OPTIONS,
+        HeaderValue::from_static("nosniff"),
+    );
+    if let Ok(v) = HeaderValue::from_str(&tag) {
+        h.insert(header::ETAG, v);
+    }
+    resp
+}
+
+/// `GET /`: the dashboard page.
+pub async fn index(headers: HeaderMap) -> Response {
+    serve(&headers, "text/html; charset=utf-8", INDEX)
+}
+
+/// `GET /assets/{name}`.
+pub async fn asset(headers: HeaderMap, Path(name): Path<String>) -> Response {
+    match ASSETS.iter().find(|a| a.name == name) {
+        Some(a) => serve(&headers, a.content_type, a.body),
+        None => crate::api::error::ApiError::new(
+            StatusCode::NOT_FOUND,
+            "not-found",
+            format!(
+                "no such asset: expected one of {}",
+                ASSETS.map(|a| a.name).join(", ")
+            ),
+        )
+        .field("name")
+        .into_response(),
+    }
+}
