@@ -139,7 +139,10 @@ async fn dashboard_end_to_end_in_headless_chromium() {
     let manifest = synth_session("lebraly-5.1", 8, 0.3, "VIN-E2E");
     std::fs::write(
         &upload,
-        tar_archive(&[("capture/session.json", serde_json::to_vec(&manifest).unwrap())]),
+        tar_archive(&[(
+            "capture/session.json",
+            serde_json::to_vec(&manifest).unwrap(),
+        )]),
     )
     .unwrap();
 
@@ -188,7 +191,10 @@ async fn dashboard_end_to_end_in_headless_chromium() {
                     .expect("spawn rigcal worker"),
             ));
         }
-        assert!(Instant::now() < deadline, "browser test took over 10 minutes");
+        assert!(
+            Instant::now() < deadline,
+            "browser test took over 10 minutes"
+        );
     }
     let status = node.0.wait().unwrap();
     assert!(
@@ -196,8 +202,17 @@ async fn dashboard_end_to_end_in_headless_chromium() {
         "the browser test failed ({status}); screenshots in {}",
         artifacts.display()
     );
-    assert!(worker.is_some(), "the page never showed the uploaded job queued");
-    for shot in ["01-key-form", "03-jobs-succeeded", "04-job", "05-planar", "09-jobs-10000"] {
+    assert!(
+        worker.is_some(),
+        "the page never showed the uploaded job queued"
+    );
+    for shot in [
+        "01-key-form",
+        "03-jobs-succeeded",
+        "04-job",
+        "05-planar",
+        "09-jobs-10000",
+    ] {
         assert!(
             artifacts.join(format!("{shot}.png")).exists(),
             "screenshot {shot} missing"

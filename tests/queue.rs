@@ -62,7 +62,14 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .unwrap()
         .is_none());
     assert!(!q
-        .complete(&job.id, "a", "succeeded", "{}", &ResultSummary::default(), None)
+        .complete(
+            &job.id,
+            "a",
+            "succeeded",
+            "{}",
+            &ResultSummary::default(),
+            None
+        )
         .await
         .unwrap());
     assert!(q
@@ -80,7 +87,14 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .await
         .unwrap());
     assert!(!q
-        .complete(&job.id, "b", "succeeded", "{}", &ResultSummary::default(), None)
+        .complete(
+            &job.id,
+            "b",
+            "succeeded",
+            "{}",
+            &ResultSummary::default(),
+            None
+        )
         .await
         .unwrap());
     assert_eq!(

@@ -6,12 +6,12 @@ use super::AppState;
 use crate::export::{render, Format};
 use crate::jobs::acceptance::judge;
 use crate::jobs::queue::{JobFilter, JobRow, JobView, STATUSES};
-use crate::store::Tenant;
 use crate::jobs::JobOptions;
 use crate::pipeline::undetected_images;
 use crate::result::ResultDocument;
 use crate::session::{parse_session, InputError};
 use crate::store::parse_rfc3339;
+use crate::store::Tenant;
 use axum::body::Bytes;
 use axum::extract::{Path, RawQuery, State};
 use axum::http::{header, HeaderMap, StatusCode};
@@ -353,7 +353,11 @@ pub async fn tenant_events(
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 
-pub(super) async fn document(state: &AppState, tenant: &str, id: &str) -> Result<(JobRow, String), ApiError> {
+pub(super) async fn document(
+    state: &AppState,
+    tenant: &str,
+    id: &str,
+) -> Result<(JobRow, String), ApiError> {
     let job = job_or_404(state, tenant, id).await?;
     match state.queue.result(tenant, id).await? {
         Some(doc) => Ok((job, doc)),

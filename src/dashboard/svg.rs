@@ -197,7 +197,13 @@ pub fn rig_top_view(doc: &ResultDocument) -> String {
     // Left panel: cameras.
     let centres: Vec<(f64, f64)> = cams
         .iter()
-        .map(|c| ground(Vec3::new(c.translation[0], c.translation[1], c.translation[2])))
+        .map(|c| {
+            ground(Vec3::new(
+                c.translation[0],
+                c.translation[1],
+                c.translation[2],
+            ))
+        })
         .collect();
     let extent = centres
         .iter()
@@ -256,7 +262,13 @@ pub fn rig_top_view(doc: &ResultDocument) -> String {
     let path: Vec<(f64, f64)> = doc
         .trajectory
         .iter()
-        .map(|p| ground(Vec3::new(p.translation[0], p.translation[1], p.translation[2])))
+        .map(|p| {
+            ground(Vec3::new(
+                p.translation[0],
+                p.translation[1],
+                p.translation[2],
+            ))
+        })
         .collect();
     let (mut xmin, mut xmax, mut ymin, mut ymax) = (-0.5f64, 0.5f64, -0.5f64, 0.5f64);
     for (x, y) in &path {
@@ -550,10 +562,7 @@ mod tests {
 
     #[test]
     fn escaping_keeps_markup_out() {
-        assert_eq!(
-            esc("<script>&\"'"),
-            "&lt;script&gt;&amp;&quot;&#39;"
-        );
+        assert_eq!(esc("<script>&\"'"), "&lt;script&gt;&amp;&quot;&#39;");
         let h = residual_bars(
             "t",
             "cameras",

@@ -142,10 +142,7 @@ mod tests {
         let mut j = job("running", None, None, None);
         j.finished_at = None;
         assert_eq!(judge(&j, &tenant()).pass, None);
-        let a = judge(
-            &job("degraded", Some(0.3), Some(0.001), None),
-            &tenant(),
-        );
+        let a = judge(&job("degraded", Some(0.3), Some(0.001), None), &tenant());
         assert_eq!(a.pass, Some(false));
         assert_eq!(a.reasons, vec!["the job ended degraded".to_string()]);
     }

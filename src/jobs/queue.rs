@@ -75,6 +75,19 @@ fn job_from(r: &SqliteRow) -> JobRow {
     }
 }
 
+fn event_from(r: &SqliteRow, with_job: bool) -> EventRow {
+    EventRow {
+        id: r.get("id"),
+        job_id: with_job.then(|| r.get("job_id")),
+        at: rfc3339(r.get("at")),
+        kind: r.get("kind"),
+        status: r.get("status"),
+        stage: r.get("stage"),
+        progress: r.get("progress"),
+        message: r.get("message"),
+    }
+}
+
 /// A job as the API shows it.
 #[derive(Clone, Debug, Serialize)]
 pub struct JobView {
@@ -141,19 +154,9 @@ impl From<&JobRow> for JobView {
 #[derive(Clone, Debug, Serialize)]
 pub struct EventRow {
     pub id: i64,
-    pub at: String,
-    pub kind: String,
-    pub status: String,
-    pub stage: Option<String>,
-    pub progress: f64,
-    pub message: Option<String>,
-}
-
-/// A job event with its job, for the tenant-wide stream the dashboard listens to.
-#[derive(Clone, Debug, Serialize)]
-pub struct TenantEventRow {
-    pub id: i64,
-    pub job_id: String,
+    /// Set in the tenant-wide stream, where events of many jobs mix.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub job_id: Option<String>,
     pub at: String,
     pub kind: String,
     pub status: String,
@@ -553,26 +556,14 @@ impl Queue {
         tenant_id: &str,
         after: i64,
         limit: i64,
-    ) -> sqlx::Result<Vec<TenantEventRow>> {
-        let rows = sqlx::query("SELECT e.id, e.job_id, e.at, e.kind, e.status, e.stage, e.progress, e.message FROM job_events e JOIN jobs j ON j.id = e.job_id WHERE e.id > ? AND j.tenant_id = ? ORDER BY e.id LIMIT ?")
+    ) -> sqlx::Result<Vec<EventRow>> {
+        let rows = sqlx::query("SELECT e.* FROM job_events e JOIN jobs j ON j.id = e.job_id WHERE e.id > ? AND j.tenant_id = ? ORDER BY e.id LIMIT ?")
             .bind(after)
             .bind(tenant_id)
             .bind(limit)
             .fetch_all(&self.pool)
             .await?;
-        Ok(rows
-            .iter()
-            .map(|r| TenantEventRow {
-                id: r.get("id"),
-                job_id: r.get("job_id"),
-                at: rfc3339(r.get("at")),
-                kind: r.get("kind"),
-                status: r.get("status"),
-                stage: r.get("stage"),
-                progress: r.get("progress"),
-                message: r.get("message"),
-            })
-            .collect())
+        Ok(rows.iter().map(|r| event_from(r, true)).collect())
     }
 
     pub async fn events_after(&self, id: &str, after: i64) -> sqlx::Result<Vec<EventRow>> {
@@ -583,18 +574,7 @@ impl Queue {
         .bind(after)
         .fetch_all(&self.pool)
         .await?;
-        Ok(rows
-            .iter()
-            .map(|r| EventRow {
-                id: r.get("id"),
-                at: rfc3339(r.get("at")),
-                kind: r.get("kind"),
-                status: r.get("status"),
-                stage: r.get("stage"),
-                progress: r.get("progress"),
-                message: r.get("message"),
-            })
-            .collect())
+        Ok(rows.iter().map(|r| event_from(r, false)).collect())
     }
 
     pub async fn result(&self, tenant_id: &str, id: &str) -> sqlx::Result<Option<String>> {

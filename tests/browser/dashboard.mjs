@@ -5,6 +5,9 @@ import { chromium } from "playwright-core";
 import assert from "node:assert/strict";
 import fs from "node:fs";
 import path from "node:path";
+import { createRequire } from "node:module";
+
+const AXE = createRequire(import.meta.url).resolve("axe-core/axe.min.js");
 
 const cfg = JSON.parse(process.env.RIGCAL_E2E);
 const shots = cfg.artifacts;
@@ -21,6 +24,20 @@ async function apiText(base, key, p) {
   const r = await fetch(base + p, { headers: { Authorization: `Bearer ${key}` } });
   assert.equal(r.status, 200, `${p}: HTTP ${r.status}`);
   return r.text();
+}
+
+// Accessibility: axe-core's WCAG 2 A/AA rules (labels, names, contrast, roles) on what
+// the page shows now; serious and critical findings fail the test.
+async function accessible(page, what) {
+  await page.addScriptTag({ path: AXE });
+  const found = await page.evaluate(async () => {
+    const r = await window.axe.run(document, { runOnly: ["wcag2a", "wcag2aa"] });
+    return r.violations.map((v) => ({ id: v.id, impact: v.impact, help: v.help, nodes: v.nodes.slice(0, 3).map((n) => n.target.join(" ")) }));
+  });
+  const bad = found.filter((v) => v.impact === "serious" || v.impact === "critical");
+  for (const v of found) log(`axe ${what}: ${v.impact} ${v.id}: ${v.help} at ${v.nodes.join(", ")}`);
+  assert.equal(bad.length, 0, `${what}: ${bad.length} serious accessibility violation(s)`);
+  log(`axe ${what}: no serious violation (${found.length} minor)`);
 }
 
 async function shot(page, name) {
@@ -47,7 +64,9 @@ const browser = await chromium.launch({
 
 try {
   // ---- 1. No key: the page asks for one and shows nothing of any tenant. ----
-  const ctx = await browser.newContext({ acceptDownloads: true, viewport: { width: 1280, height: 900 } });
+  // bypassCSP: only so that axe-core can be injected; the page itself runs under its CSP
+// in the other contexts.
+  const ctx = await browser.newContext({ acceptDownloads: true, bypassCSP: true, viewport: { width: 1280, height: 900 } });
   const page = await ctx.newPage();
   watch(page);
   await page.goto(cfg.base + "/");
@@ -57,6 +76,7 @@ try {
   await page.getByRole("button", { name: "Sign in" }).click();
   await page.getByText("That key was not accepted").waitFor();
   await shot(page, "01-key-form");
+  await accessible(page, "key form");
   // Keyboard only from here: type the key, Enter.
   await page.getByLabel("API key").fill(cfg.key);
   await page.keyboard.press("Enter");
@@ -72,6 +92,8 @@ try {
 
   // ---- 2. Upload a session archive through the form; the job starts. ----
   await page.getByRole("link", { name: "Upload" }).click();
+  await page.getByLabel("Session archive").waitFor();
+  await accessible(page, "upload form");
   await page.getByLabel("Session archive").setInputFiles(cfg.upload);
   await page.getByRole("button", { name: "Upload and start job" }).click();
   await page.waitForFunction(() => /^#\/jobs\/[0-9a-f-]{36}$/.test(location.hash), null, { timeout: 30000 });
@@ -108,6 +130,7 @@ try {
   assert.match(await row.locator("td.num").nth(1).textContent(), /^\d+\.\d{3}$/);
   assert.equal(await row.locator("[data-acceptance]").count(), 1);
   await shot(page, "03-jobs-succeeded");
+  await accessible(page, "jobs page");
 
   // ---- 4. The job page shows what the API returns. ----
   await row.getByRole("link").first().focus();
@@ -148,6 +171,7 @@ try {
     log(`downloaded ${dl.suggestedFilename()} (${want.length} bytes)`);
   }
   await shot(page, "04-job");
+  await accessible(page, "job page");
 
   // ---- 5. A singular drive: the unobservable direction and the recommendation. ----
   await page.evaluate((id) => { location.hash = `#/jobs/${id}`; }, cfg.planar_job);
@@ -163,6 +187,7 @@ try {
   assert.ok(await page.locator("#extrinsics .unobservable").count() >= 1, "unobservable σ highlighted");
   log(`planar job: ${unobs.length} unobservable direction(s), ${recs.length} recommendation(s) shown`);
   await shot(page, "05-planar");
+  await accessible(page, "singular job page");
 
   // ---- 6. A failed job says why and what is at fault. ----
   await page.evaluate((id) => { location.hash = `#/jobs/${id}`; }, cfg.failed_job);
@@ -173,6 +198,7 @@ try {
   const failText = await page.locator("#failure").textContent();
   assert.ok(failText.includes(failedJob.error.code), `failure box names ${failedJob.error.code}`);
   await shot(page, "06-failed");
+  await accessible(page, "failed job page");
 
   // ---- 7. The vehicle: history and drift. ----
   await page.evaluate((v) => { location.hash = `#/vehicles/${v}`; }, cfg.vehicle);
@@ -185,6 +211,7 @@ try {
   const changed = hist.calibrations.filter((c) => c.change_from_previous_accepted).reduce((a, c) => a + c.change_from_previous_accepted.length, 0);
   assert.equal(circles, 2 * changed, "one point per camera change, in both panels");
   await shot(page, "07-vehicle");
+  await accessible(page, "vehicle page");
   assert.equal(await page.evaluate(() => window.__noReload), "still-here", "no reload anywhere");
 
   // ---- 8. A tablet: no sideways scrolling of the page itself. ----

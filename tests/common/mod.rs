@@ -290,3 +290,10 @@ pub fn tar_archive(files: &[(&str, Vec<u8>)]) -> Vec<u8> {
     }
     out
 }
+
+/// `GET path` → 200 and its JSON body.
+pub async fn get_json(c: &reqwest::Client, s: &Server, path: &str) -> Value {
+    let r = c.get(s.url(path)).send().await.unwrap();
+    assert_eq!(r.status(), 200, "GET {path}");
+    r.json().await.unwrap()
+}

@@ -485,7 +485,7 @@ async function download(jobId, format, button) {
     const cd = resp.headers.get("content-disposition") || "";
     const m = cd.match(/filename="([^"]+)"/);
     const name = m ? m[1] : `rigcal-${jobId}.${format === "json" ? "json" : format === "urdf" ? "urdf" : "yaml"}`;
-    const a = h("a", { href: URL.createObjectURL(blob), download: name });
+    const a = h("a", { href: URL.createObjectURL(blob), download: name, hidden: true }, name);
     document.body.append(a);
     a.click();
     setTimeout(() => { URL.revokeObjectURL(a.href); a.remove(); }, 1000);
