@@ -512,7 +512,7 @@ fn detect_images(
     let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
         Ok(t) => t,
         Err(_) => vec![serde_json::from_slice::<TargetSpec>(&text).map_err(|e| {
-            anyhow!("--target: a target object (aprilgrid | apriltags) or an array of them: {e}")
+            anyhow!("--target: a target object (aprilgrid | apriltags | line_target) or an array of them: {e}")
         })?],
     };
     let camera = match camera {
@@ -524,6 +524,11 @@ fn detect_images(
         }
         None => None,
     };
+    // Line targets (Wu's L) are found by shape, whatever their size; their lines and
+    // corners are reported per L found, left to right.
+    let lines_only = targets
+        .iter()
+        .all(|t| matches!(t, TargetSpec::LineTarget { .. }));
     let mut out = Vec::new();
     let mut failures = 0;
     for path in images {
@@ -531,12 +536,18 @@ fn detect_images(
         let size = camera.as_ref().map(|c| (c.width, c.height));
         let result = decode_gray(&bytes, size, DEFAULT_MAX_IMAGE_PIXELS).and_then(|gray| {
             let start = std::time::Instant::now();
-            let d = detect_tags(&gray, &targets, camera.as_ref(), &DetectOptions::default())?;
-            Ok((d, start.elapsed().as_secs_f64() * 1e3))
+            let v = if lines_only {
+                let lens = rigcal::detect::refine::Lens(camera.as_ref());
+                let found = rigcal::detect::linetarget::detect_line_targets(&gray, lens);
+                serde_json::json!({ "line_targets": found })
+            } else {
+                let d = detect_tags(&gray, &targets, camera.as_ref(), &DetectOptions::default())?;
+                serde_json::to_value(&d).map_err(|e| e.to_string())?
+            };
+            Ok((v, start.elapsed().as_secs_f64() * 1e3))
         });
         out.push(match result {
-            Ok((d, ms)) => {
-                let mut v = serde_json::to_value(&d)?;
+            Ok((mut v, ms)) => {
                 v["image"] = serde_json::json!(path.display().to_string());
                 v["elapsed_ms"] = serde_json::json!(ms);
                 v

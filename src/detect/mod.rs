@@ -12,6 +12,7 @@
 pub mod board;
 pub mod gray;
 mod grid;
+pub mod linetarget;
 pub mod quads;
 pub mod refine;
 pub mod tag36h11;

@@ -137,56 +137,130 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64,
     (e.abs() <= reach + d).then_some((e, contrast))
 }
 
+/// How a polygon's sides are sampled: the fraction of each side kept clear of its
+/// corners, and how far (px) the nearest other edge may be from a side (levels are read
+/// and edges searched only well within that).
+#[derive(Clone, Copy, Debug)]
+pub struct SideSampling {
+    pub corner_clearance: f64,
+    /// Room around a side of `len` px (a tag's border cell: `len / 8`).
+    pub room: fn(len_px: f64, shortest_px: f64) -> f64,
+}
+
+/// A tag's black square: profiles ~1 cell clear of the corners (AprilGrid crossing
+/// squares touch them), within the one-cell border.
+pub const TAG_SIDES: SideSampling = SideSampling {
+    corner_clearance: 0.12,
+    room: |len, _| len / 8.0,
+};
+
+/// A refined dark polygon on a bright ground, in the plane where its sides are straight.
+#[derive(Clone, Debug)]
+pub struct RefinedPolygon {
+    /// Corners in raw pixels, in the order given.
+    pub corners: Vec<Vec2>,
+    /// Per side (from corner k to k+1): the edge points kept by the fit, raw pixels.
+    pub side_points: Vec<Vec<Vec2>>,
+    /// Per side: `n · q = c` in the plane (`|n| = 1`), as `[n.x, n.y, −c]`.
+    pub side_lines: Vec<[f64; 3]>,
+    pub edge_rms: f64,
+    pub contrast: f64,
+}
+
 /// Refine a tag's black square. `corners` in raw pixels, counter-clockwise in the tag's
 /// frame (any consistent order round the quad works); `reach` (px) is how far the true
 /// sides may be from the given ones.
 pub fn refine_quad(img: &Gray, corners: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Refined> {
-    let mut plane = lens.quad_to_plane(corners)?;
-    let mut out = None;
-    let mut reach = reach;
-    for _pass in 0..2 {
-        let (refined, lines) = refine_once(img, &plane, lens, reach)?;
-        plane = refined;
-        out = Some(lines);
-        reach = 1.0;
-    }
-    let (edge_rms, contrast) = out?;
-    let mut px = [Vec2::zeros(); 4];
-    for k in 0..4 {
-        px[k] = lens.to_pixel(plane[k])?;
-    }
+    let r = refine_polygon(img, corners, lens, reach, &TAG_SIDES)?;
     Some(Refined {
-        corners: px,
-        edge_rms,
-        contrast,
+        corners: [r.corners[0], r.corners[1], r.corners[2], r.corners[3]],
+        edge_rms: r.edge_rms,
+        contrast: r.contrast,
     })
 }
 
-type Pass = ([Vec2; 4], (f64, f64));
+/// Refine any simple dark polygon (convex or not) from rough corners in raw pixels:
+/// two passes of side sampling, the second along the first's sides.
+pub fn refine_polygon(
+    img: &Gray,
+    corners: &[Vec2],
+    lens: Lens,
+    reach: f64,
+    sampling: &SideSampling,
+) -> Option<RefinedPolygon> {
+    let mut plane: Vec<Vec2> = corners
+        .iter()
+        .map(|c| lens.to_plane(*c))
+        .collect::<Option<_>>()?;
+    let mut reach = reach;
+    let mut last = None;
+    for _pass in 0..2 {
+        let pass = refine_once(img, &plane, lens, reach, sampling)?;
+        plane = pass.corners.clone();
+        last = Some(pass);
+        reach = 1.0;
+    }
+    let pass = last?;
+    Some(RefinedPolygon {
+        corners: plane
+            .iter()
+            .map(|q| lens.to_pixel(*q))
+            .collect::<Option<_>>()?,
+        side_points: pass.side_points,
+        side_lines: pass.lines.iter().map(|l| [l.n.x, l.n.y, -l.c]).collect(),
+        edge_rms: pass.edge_rms,
+        contrast: pass.contrast,
+    })
+}
 
-fn refine_once(img: &Gray, plane: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Pass> {
+struct Pass {
+    corners: Vec<Vec2>,
+    lines: Vec<Line>,
+    side_points: Vec<Vec<Vec2>>,
+    edge_rms: f64,
+    contrast: f64,
+}
+
+fn refine_once(
+    img: &Gray,
+    plane: &[Vec2],
+    lens: Lens,
+    reach: f64,
+    sampling: &SideSampling,
+) -> Option<Pass> {
+    let n_sides = plane.len();
+    if n_sides < 3 {
+        return None;
+    }
     let px: Vec<Vec2> = plane
         .iter()
         .map(|q| lens.to_pixel(*q))
         .collect::<Option<_>>()?;
-    let centre = px.iter().sum::<Vec2>() / 4.0;
-    let mut lines = [Line {
-        n: Vec2::zeros(),
-        c: 0.0,
-    }; 4];
+    // Orientation in raw pixels: the outward normal of side a→b is sign·(t.y, −t.x).
+    let area2: f64 = (0..n_sides)
+        .map(|k| {
+            let (a, b) = (px[k], px[(k + 1) % n_sides]);
+            a.x * b.y - a.y * b.x
+        })
+        .sum();
+    let outward = if area2 >= 0.0 { 1.0 } else { -1.0 };
+    let shortest = (0..n_sides)
+        .map(|k| (px[(k + 1) % n_sides] - px[k]).norm())
+        .fold(f64::INFINITY, f64::min);
+    let mut lines = Vec::with_capacity(n_sides);
+    let mut side_points = Vec::with_capacity(n_sides);
     let (mut sq, mut count, mut contrast_sum, mut contrast_n) = (0.0, 0usize, 0.0, 0usize);
-    for side in 0..4 {
-        let (a, b) = (plane[side], plane[(side + 1) % 4]);
-        let len_px = (px[(side + 1) % 4] - px[side]).norm();
+    for side in 0..n_sides {
+        let (a, b) = (plane[side], plane[(side + 1) % n_sides]);
+        let len_px = (px[(side + 1) % n_sides] - px[side]).norm();
         if len_px < 6.0 {
             return None;
         }
-        // The border is one cell (1/8 of the side) wide: stay inside it.
-        let border = len_px / 8.0;
-        let d = (0.45 * border).clamp(0.6, 2.5);
-        let reach_here = reach.min(0.9 * border);
-        // Profiles keep ~1 cell clear of the corners (AprilGrid crossing squares).
-        let (t0, span) = (0.12, 0.76);
+        let room = (sampling.room)(len_px, shortest);
+        let d = (0.45 * room).clamp(0.6, 2.5);
+        let reach_here = reach.min(0.9 * room);
+        let t0 = sampling.corner_clearance;
+        let span = 1.0 - 2.0 * t0;
         let samples = (len_px * span).ceil().max(6.0) as usize;
         let mut pts = Vec::with_capacity(samples);
         for i in 0..samples {
@@ -196,10 +270,7 @@ fn refine_once(img: &Gray, plane: &[Vec2; 4], lens: Lens, reach: f64) -> Option<
             let dt = 1e-3;
             let p2 = lens.to_pixel(a + (b - a) * (t + dt))?;
             let tangent = (p2 - p).normalize();
-            let mut n = Vec2::new(tangent.y, -tangent.x);
-            if n.dot(&(p - centre)) < 0.0 {
-                n = -n;
-            }
+            let n = Vec2::new(tangent.y, -tangent.x) * outward;
             if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d) {
                 if let Some(q) = lens.to_plane(p + n * e) {
                     pts.push((q, p + n * e));
@@ -214,7 +285,7 @@ fn refine_once(img: &Gray, plane: &[Vec2; 4], lens: Lens, reach: f64) -> Option<
         let plane_pts: Vec<Vec2> = pts.iter().map(|p| p.0).collect();
         let mut line = fit_line(&plane_pts)?;
         // Trim outliers (a blot, a finger, a neighbouring edge) and refit.
-        let scale = (px[(side + 1) % 4] - px[side]).norm() / (b - a).norm().max(1e-300);
+        let scale = len_px / (b - a).norm().max(1e-300);
         let res: Vec<f64> = plane_pts
             .iter()
             .map(|q| (line.n.dot(q) - line.c).abs() * scale)
@@ -222,41 +293,44 @@ fn refine_once(img: &Gray, plane: &[Vec2; 4], lens: Lens, reach: f64) -> Option<
         let mut sorted = res.clone();
         sorted.sort_by(|x, y| x.total_cmp(y));
         let med = sorted[sorted.len() / 2];
-        let keep: Vec<Vec2> = plane_pts
+        let kept: Vec<(Vec2, Vec2)> = pts
             .iter()
             .zip(&res)
             .filter(|(_, r)| **r <= (3.0 * 1.4826 * med).max(0.05))
-            .map(|(q, _)| *q)
+            .map(|(p, _)| *p)
             .collect();
-        if keep.len() >= 4 {
+        if kept.len() >= 4 {
+            let keep: Vec<Vec2> = kept.iter().map(|p| p.0).collect();
             line = fit_line(&keep)?;
         }
-        for q in &keep {
+        let kept = if kept.len() >= 4 { kept } else { pts };
+        for (q, _) in &kept {
             let r = (line.n.dot(q) - line.c) * scale;
             sq += r * r;
             count += 1;
         }
-        lines[side] = line;
+        lines.push(line);
+        side_points.push(kept.into_iter().map(|p| p.1).collect());
     }
-    let mut out = [Vec2::zeros(); 4];
-    for (k, o) in out.iter_mut().enumerate() {
+    let mut out = Vec::with_capacity(n_sides);
+    for k in 0..n_sides {
         // Corner k joins side k−1 (from corner k−1) and side k (to corner k+1).
-        *o = intersect(lines[(k + 3) % 4], lines[k])?;
+        out.push(intersect(lines[(k + n_sides - 1) % n_sides], lines[k])?);
     }
-    // A refined quad far from its start is a different edge, not a refinement.
-    for k in 0..4 {
+    // A refined polygon far from its start is a different edge, not a refinement.
+    for k in 0..n_sides {
         let moved = (lens.to_pixel(out[k])? - px[k]).norm();
         if moved > reach + 2.0 {
             return None;
         }
     }
-    Some((
-        out,
-        (
-            (sq / count.max(1) as f64).sqrt(),
-            contrast_sum / contrast_n.max(1) as f64,
-        ),
-    ))
+    Some(Pass {
+        corners: out,
+        lines,
+        side_points,
+        edge_rms: (sq / count.max(1) as f64).sqrt(),
+        contrast: contrast_sum / contrast_n.max(1) as f64,
+    })
 }
 
 #[cfg(test)]

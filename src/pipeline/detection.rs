@@ -5,10 +5,14 @@
 //! session still calibrates — and the report lists what each image gave.
 
 use super::{enter, Cancelled, Progress};
+use crate::detect::linetarget::{detect_line_targets, LineTargetDetection};
+use crate::detect::refine::Lens;
 use crate::detect::{detect_tags, gray::Gray, DetectOptions};
 use crate::imageio;
 use crate::result::{DetectionReport, ImageReport};
-use crate::session::{from_manifest, image_slots, ImageSlot, ObservationSpec, Session, TargetSpec};
+use crate::session::{
+    from_manifest, image_slots, ImageSlot, LineSpec, Method, ObservationSpec, Session, TargetSpec,
+};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
@@ -47,13 +51,16 @@ impl ImageSource for NoImages {
 }
 
 /// Does the session have AprilTag targets to look for?
-fn has_tag_targets(session: &Session) -> bool {
-    session.manifest.targets.iter().any(|t| {
-        matches!(
-            t,
-            TargetSpec::Aprilgrid { .. } | TargetSpec::Apriltags { .. }
-        )
-    })
+/// Whether this build can detect the session's targets: AprilTag boards, or the line
+/// targets of a vanishing session.
+fn detectable(session: &Session) -> bool {
+    session.manifest.method == Method::Vanishing
+        || session.manifest.targets.iter().any(|t| {
+            matches!(
+                t,
+                TargetSpec::Aprilgrid { .. } | TargetSpec::Apriltags { .. }
+            )
+        })
 }
 
 /// Detect what can be detected. Returns the session with observations filled in (or
@@ -64,16 +71,23 @@ pub fn detect_session(
     source: &dyn ImageSource,
     progress: &dyn Progress,
 ) -> Result<(Session, Option<DetectionReport>), Cancelled> {
-    let pending: Vec<(usize, ImageSlot)> = image_slots(session)
+    let pending: Vec<(Option<usize>, ImageSlot)> = image_slots(session)
         .into_iter()
-        .filter_map(|s| {
-            let fi = s.frame_pos?;
-            let f = &session.manifest.frames[fi];
-            let done = f.observations.get(&s.camera).is_some_and(|o| !o.is_empty());
-            (!done).then_some((fi, s))
+        .filter_map(|s| match s.frame_pos {
+            Some(fi) => {
+                let f = &session.manifest.frames[fi];
+                let done = f.observations.get(&s.camera).is_some_and(|o| !o.is_empty())
+                    || f.lines.get(&s.camera).is_some_and(|l| !l.is_empty());
+                (!done).then_some((Some(fi), s))
+            }
+            // A ring image (vanishing method): its slot's frame is the ring index.
+            None => {
+                let r = session.manifest.ring.iter().find(|r| r.index == s.frame)?;
+                r.lines.is_empty().then_some((None, s))
+            }
         })
         .collect();
-    if pending.is_empty() || !has_tag_targets(session) {
+    if pending.is_empty() || !detectable(session) {
         return Ok((session.clone(), None));
     }
     enter(progress, "detection")?;
@@ -124,13 +138,30 @@ pub fn detect_session(
     let mut manifest = session.manifest.clone();
     let mut images = Vec::new();
     for ((fi, slot), r) in pending.iter().zip(results) {
-        let Some((report, obs)) = r else { continue };
+        let Some((report, found)) = r else { continue };
         // Detected (or skipped with a reason): no longer an image awaiting detection.
-        manifest.frames[*fi].images.remove(&slot.camera);
-        if !obs.is_empty() {
-            manifest.frames[*fi]
-                .observations
-                .insert(slot.camera.clone(), obs);
+        match fi {
+            Some(fi) => {
+                let frame = &mut manifest.frames[*fi];
+                frame.images.remove(&slot.camera);
+                match found {
+                    Found::Points(obs) if !obs.is_empty() => {
+                        frame.observations.insert(slot.camera.clone(), obs);
+                    }
+                    Found::Lines(lines) if !lines.is_empty() => {
+                        frame.lines.insert(slot.camera.clone(), lines);
+                    }
+                    _ => {}
+                }
+            }
+            None => {
+                if let Some(r) = manifest.ring.iter_mut().find(|r| r.index == slot.frame) {
+                    r.image = None;
+                    if let Found::Lines(lines) = found {
+                        r.lines = lines;
+                    }
+                }
+            }
         }
         images.push(report);
     }
@@ -159,14 +190,17 @@ pub fn decode_gray(
     Ok(Gray::from_dynamic(&img))
 }
 
-/// What one image gave: its report line and its observations.
-type SlotOutcome = (ImageReport, Vec<ObservationSpec>);
+/// What one image gave: tag corners (motion method) or feature-line points (vanishing).
+#[derive(Clone)]
+enum Found {
+    Points(Vec<ObservationSpec>),
+    Lines(Vec<LineSpec>),
+}
 
-fn detect_slot(
-    session: &Session,
-    slot: &ImageSlot,
-    source: &dyn ImageSource,
-) -> (ImageReport, Vec<ObservationSpec>) {
+/// What one image gave: its report line and its detections.
+type SlotOutcome = (ImageReport, Found);
+
+fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) -> SlotOutcome {
     let mut report = ImageReport {
         field: slot.field.clone(),
         camera: slot.camera.clone(),
@@ -181,6 +215,23 @@ fn detect_slot(
     let camera = session
         .camera_index(&slot.camera)
         .map(|i| &session.cameras[i].camera);
+    if session.manifest.method == Method::Vanishing {
+        let outcome = source.read(slot).and_then(|bytes| {
+            let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
+            line_slot(session, slot, &gray)
+        });
+        return match outcome {
+            Ok((lines, targets)) => {
+                report.tags = targets;
+                report.points = lines.iter().map(|l| l.points.len()).sum();
+                (report, Found::Lines(lines))
+            }
+            Err(e) => {
+                report.error = Some(e);
+                (report, Found::Lines(vec![]))
+            }
+        };
+    }
     let outcome = source.read(slot).and_then(|bytes| {
         let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
         detect_tags(
@@ -205,11 +256,93 @@ fn detect_slot(
                     v: p.v,
                 })
                 .collect();
-            (report, obs)
+            (report, Found::Points(obs))
         }
         Err(e) => {
             report.error = Some(e);
-            (report, vec![])
+            (report, Found::Points(vec![]))
+        }
+    }
+}
+
+/// Size of a detected L in the image (its corners' spread), to prefer the nearest.
+fn spread(d: &LineTargetDetection) -> f64 {
+    let c = &d.corners;
+    (c[0][0] - c[3][0]).hypot(c[0][1] - c[3][1])
+}
+
+fn line_specs(d: &LineTargetDetection, target: &str) -> Vec<LineSpec> {
+    d.lines
+        .iter()
+        .map(|l| LineSpec {
+            target: target.to_string(),
+            line: l.line as u8,
+            points: l.points.clone(),
+        })
+        .collect()
+}
+
+/// Line targets in a rig image (the one `frames[0].line_targets` names; the largest L
+/// if several show) or in a ring image (its two targets, named left to right).
+fn line_slot(
+    session: &Session,
+    slot: &ImageSlot,
+    gray: &Gray,
+) -> Result<(Vec<LineSpec>, usize), String> {
+    let v = session
+        .vanishing
+        .as_ref()
+        .ok_or("a vanishing session (internal: no vanishing input)")?;
+    let frame = session.manifest.frames.first();
+    match slot.frame_pos {
+        Some(_) => {
+            let camera = session
+                .camera_index(&slot.camera)
+                .map(|i| &session.cameras[i].camera)
+                .ok_or("a rig camera")?;
+            let target = frame
+                .and_then(|f| f.line_targets.get(&slot.camera))
+                .ok_or_else(|| {
+                    format!(
+                        "expected frames[0].line_targets.{} to name the line target this camera sees",
+                        slot.camera
+                    )
+                })?;
+            let mut found = detect_line_targets(gray, Lens(Some(camera)));
+            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
+            let n = found.len();
+            let d = found
+                .first()
+                .ok_or("expected a line target (a dark L on a light ground), found none")?;
+            Ok((line_specs(d, target), n))
+        }
+        None => {
+            let r = session
+                .manifest
+                .ring
+                .iter()
+                .find(|r| r.index == slot.frame)
+                .ok_or("a ring view")?;
+            let mut found = detect_line_targets(gray, Lens(Some(&v.auxiliary.camera)));
+            if found.len() < 2 {
+                return Err(format!(
+                    "expected the two line targets {} and {} in view, found {}",
+                    r.targets[0],
+                    r.targets[1],
+                    found.len()
+                ));
+            }
+            let n = found.len();
+            // The two largest, then left to right (the order ring[].targets names them).
+            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
+            found.truncate(2);
+            found.sort_by(|a, b| {
+                let cx = |d: &LineTargetDetection| d.corners.iter().map(|c| c[0]).sum::<f64>();
+                cx(a).total_cmp(&cx(b))
+            });
+            let mut lines = line_specs(&found[0], &r.targets[0]);
+            lines.extend(line_specs(&found[1], &r.targets[1]));
+            Ok((lines, n))
         }
     }
 }

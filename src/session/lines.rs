@@ -190,7 +190,22 @@ pub fn validate_vanishing(
         ));
     }
     let mut rig = vec![Vec::new(); cameras.len()];
+    let mut rig_targets = vec![None; cameras.len()];
     if let Some(f) = m.frames.first() {
+        for (cam, t) in &f.line_targets {
+            let at = format!("frames[0].line_targets.{cam}");
+            let ci = cameras
+                .iter()
+                .position(|c| &c.id == cam)
+                .ok_or_else(|| InputError::new(&at, "a rig camera id declared in cameras[]"))?;
+            let ti = *target_index.get(t.as_str()).ok_or_else(|| {
+                InputError::new(
+                    &at,
+                    format!("the id of a line_target in targets[], got {t:?}"),
+                )
+            })?;
+            rig_targets[ci] = Some(ti);
+        }
         if !f.observations.is_empty() {
             return Err(InputError::new(
                 "frames[0].observations",
@@ -218,6 +233,17 @@ pub fn validate_vanishing(
                         targets[obs[0].target].id, targets[obs[o].target].id
                     ),
                 ));
+            }
+            if let (Some(t), Some(o)) = (rig_targets[ci], obs.first()) {
+                if o.target != t {
+                    return Err(InputError::new(
+                        format!("frames[0].lines.{cam}[0].target"),
+                        format!(
+                            "the target frames[0].line_targets names for {cam} ({}), got {:?}",
+                            targets[t].id, targets[o.target].id
+                        ),
+                    ));
+                }
             }
             rig[ci] = obs;
         }

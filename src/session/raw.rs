@@ -134,6 +134,10 @@ pub struct FrameSpec {
     /// Camera id → points of the feature lines of line targets (vanishing method).
     #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
     pub lines: BTreeMap<String, Vec<LineSpec>>,
+    /// Rig camera id → the id of the line target it sees (vanishing method, sessions of
+    /// images: which target a detected L is).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub line_targets: BTreeMap<String, String>,
 }
 
 /// Points measured along one feature line `l1..l6` of a line target (Wu et al. Fig. 1),

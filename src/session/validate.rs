@@ -488,6 +488,10 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
     motion_only("ring", !m.ring.is_empty())?;
     for (fi, f) in m.frames.iter().enumerate() {
         motion_only(&format!("frames[{fi}].lines"), !f.lines.is_empty())?;
+        motion_only(
+            &format!("frames[{fi}].line_targets"),
+            !f.line_targets.is_empty(),
+        )?;
     }
     if m.method == Method::Motion
         && m.targets

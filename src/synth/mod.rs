@@ -396,6 +396,7 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
             images: BTreeMap::new(),
             observations,
             lines: BTreeMap::new(),
+            line_targets: BTreeMap::new(),
         });
     }
     let mut scale = Vec::new();

@@ -152,6 +152,46 @@ pub fn sample_lines(
         .collect()
 }
 
+/// White paper around each printed L (m).
+pub const PRINT_MARGIN: f64 = 0.05;
+
+/// Render line targets as `camera` sees them: each a dark L filled on a white sheet
+/// ([`crate::detect::linetarget`]'s print), on a grey ground. The targets must share one
+/// plane (the ring's lie on the ground); `cam_from_targets[0]`'s plane is rendered.
+pub fn render_line_targets(
+    camera: &Camera,
+    cam_from_targets: &[Pose],
+    target: &LineTarget,
+    opts: &crate::synth::render::RenderOptions,
+) -> image::GrayImage {
+    // Board (x, y, 0) of the renderer = target (x, 0, y): a proper rotation.
+    let target_from_board = Pose::new(
+        nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]),
+        Vec3::zeros(),
+    );
+    let first = cam_from_targets[0];
+    let others: Vec<Pose> = cam_from_targets
+        .iter()
+        .map(|t| t.inverse() * first)
+        .collect();
+    let (l1, l2, m) = (target.length, target.spacing, PRINT_MARGIN);
+    let shade = move |bx: f64, by: f64| -> Option<bool> {
+        let mut on_sheet = false;
+        for t in &others {
+            let p = t.apply(&Vec3::new(bx, 0.0, by));
+            let (x, z) = (p.x, p.z);
+            if (0.0..=l1).contains(&x) && (0.0..=l2).contains(&z)
+                || (0.0..=l2).contains(&x) && (0.0..=l1).contains(&z)
+            {
+                return Some(false);
+            }
+            on_sheet |= (-m..=l1 + m).contains(&x) && (-m..=l1 + m).contains(&z);
+        }
+        on_sheet.then_some(true)
+    };
+    crate::synth::render::render(camera, &(first * target_from_board), &shade, opts)
+}
+
 /// The `wu-table2` session and its truth.
 pub fn generate(rng: &mut impl Rng, noise_px: f64) -> (SessionManifest, Truth) {
     generate_with(rng, noise_px, &rig_camera(), &aux_camera(), &table2_scene())
@@ -227,6 +267,9 @@ pub fn generate_with(
             images: BTreeMap::new(),
             observations: BTreeMap::new(),
             lines,
+            line_targets: (0..8)
+                .map(|k| (cam_ids[k].clone(), target_ids[k].clone()))
+                .collect(),
         }],
         priors: None,
         auxiliary_camera: Some(camera_spec("aux", aux)),
