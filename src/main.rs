@@ -195,11 +195,15 @@ enum BenchCommand {
     Ring {
         #[arg(long, default_value_t = 50)]
         trials: usize,
-        /// Comma-separated pixel noise levels.
+        /// Comma-separated noise levels: pixels on the line points, or grey levels of
+        /// the rendered images with --images.
         #[arg(long, default_value = "0.2,0.5,1.0", value_delimiter = ',')]
         noise: Vec<f64>,
         #[arg(long, default_value_t = 1000)]
         seed: u64,
+        /// Render the 16 images of every trial and go through the line-target detector.
+        #[arg(long)]
+        images: bool,
     },
     /// Detector on rendered tags and AprilGrids: detection rate, wrong ids, corner RMS
     /// error vs truth, time per image.
@@ -405,12 +409,18 @@ fn run() -> Result<i32> {
                     trials,
                     noise,
                     seed,
+                    images,
                 },
         } => {
             if noise.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
-                return Err(anyhow!("--noise: positive pixel σ values, got {noise:?}"));
+                return Err(anyhow!("--noise: positive σ values, got {noise:?}"));
             }
-            let rows = rigcal::bench::ring::ring_accuracy(&noise, trials, seed);
+            let rows = if images {
+                println!("From rendered images through the line-target detector; σ is image noise in grey levels (of 255).");
+                rigcal::bench::ring::ring_accuracy_images(&noise, trials, seed)
+            } else {
+                rigcal::bench::ring::ring_accuracy(&noise, trials, seed)
+            };
             rigcal::bench::ring::print_table(&rows);
             Ok(0)
         }

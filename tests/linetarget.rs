@@ -73,12 +73,17 @@ fn aux_view(
     aux: &Camera,
     k: usize,
 ) -> (image::GrayImage, Vec<Pose>) {
-    let poses: Vec<Pose> = [k, (k + 1) % 8]
-        .iter()
-        .map(|t| scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[*t])
-        .collect();
+    let poses = aux_poses(scene, k);
     let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + k as u64, 2.0));
     (img, poses)
+}
+
+/// `aux_from_target` of auxiliary view `k`'s two targets.
+fn aux_poses(scene: &rigcal::synth::ring::RingScene, k: usize) -> Vec<Pose> {
+    [k, (k + 1) % 8]
+        .iter()
+        .map(|t| scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[*t])
+        .collect()
 }
 
 /// Where a target's centre lands across the image (u, px): left-to-right order.
@@ -236,41 +241,15 @@ fn nothing_on_images_without_a_line_target() {
 /// camera's extrinsic against the truth.
 #[test]
 fn table2_ring_calibrates_from_rendered_images() {
-    use rand::SeedableRng;
     let dir = tempfile::tempdir().unwrap();
-    let scene = table2_scene();
-    let (rig, aux) = (rig_camera(), aux_camera());
-    let mut rng = rand::rngs::StdRng::seed_from_u64(5);
-    let (manifest, truth) = rigcal::synth::ring::generate_with(&mut rng, 0.0, &rig, &aux, &scene);
-    let mut m = serde_json::to_value(&manifest).unwrap();
-    // Images instead of line points.
-    m["frames"][0]["lines"] = serde_json::json!({});
-    for k in 0..8 {
-        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
-        let img = render_line_targets(&rig, &[cam_from_target], &TARGET, &opts(k as u64, 2.0));
-        let name = format!("rig/cam{}.png", k + 1);
-        std::fs::create_dir_all(dir.path().join("rig")).unwrap();
-        img.save(dir.path().join(&name)).unwrap();
-        m["frames"][0]["images"][format!("cam{}", k + 1)] = serde_json::json!(name);
+    let (manifest, truth, files) =
+        rigcal::synth::ring::image_session(&rig_camera(), &aux_camera(), &table2_scene(), 2.0, 5);
+    for (path, bytes) in &files {
+        let p = dir.path().join(path);
+        std::fs::create_dir_all(p.parent().unwrap()).unwrap();
+        std::fs::write(p, bytes).unwrap();
     }
-    std::fs::create_dir_all(dir.path().join("aux")).unwrap();
-    for (ri, r) in m["ring"].as_array_mut().unwrap().iter_mut().enumerate() {
-        let k = ri;
-        let j = (k + 1) % 8;
-        let (img, poses) = aux_view(&scene, &aux, k);
-        let name = format!("aux/{ri}.png");
-        img.save(dir.path().join(&name)).unwrap();
-        // The pair named left to right as the auxiliary camera sees it.
-        let centre_u = |p: &Pose| centre_u(&aux, p);
-        let (a, b) = (format!("t{}", k + 1), format!("t{}", j + 1));
-        r["targets"] = if centre_u(&poses[0]) <= centre_u(&poses[1]) {
-            serde_json::json!([a, b])
-        } else {
-            serde_json::json!([b, a])
-        };
-        r["lines"] = serde_json::json!([]);
-        r["image"] = serde_json::json!(name);
-    }
+    let m = serde_json::to_value(&manifest).unwrap();
     let path = dir.path().join("session.json");
     std::fs::write(&path, serde_json::to_vec_pretty(&m).unwrap()).unwrap();
     let out = std::process::Command::new(env!("CARGO_BIN_EXE_rigcal"))
@@ -310,4 +289,39 @@ fn table2_ring_calibrates_from_rendered_images() {
     // Wu claims 1.1 mm and 0.05° at σ ≤ 0.5 px on the line points; the detector's
     // points are good to ~0.03 px here (see the tests above).
     assert!(worst_t < 0.5 && worst_r < 0.02, "{worst_t} mm, {worst_r}°");
+}
+
+/// Heavy image noise (σ 10 grey levels of a 205-level step) on the whole ring: every
+/// target still found and labelled. Rough corners from thresholding lose acute tips
+/// under such noise (11 px seen on a grazing rig view); the sides still place them.
+#[test]
+fn heavy_noise_still_finds_every_target() {
+    let scene = table2_scene();
+    let (rig, aux) = (rig_camera(), aux_camera());
+    let mut worst: f64 = 0.0;
+    for seed in 0..2u64 {
+        for k in 0..8 {
+            let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+            let img = render_line_targets(
+                &rig,
+                &[cam_from_target],
+                &TARGET,
+                &opts(seed * 100 + k as u64, 10.0),
+            );
+            let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&rig)));
+            assert_eq!(found.len(), 1, "seed {seed} rig {k}");
+            worst = worst.max(errors(&rig, &cam_from_target, &TARGET, &found[0]).0);
+            let poses = aux_poses(&scene, k);
+            let img = render_line_targets(
+                &aux,
+                &poses,
+                &TARGET,
+                &opts(seed * 100 + 50 + k as u64, 10.0),
+            );
+            let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&aux)));
+            assert_eq!(found.len(), 2, "seed {seed} aux {k}");
+        }
+    }
+    eprintln!("σ 10 grey levels: worst rig corner error {worst:.3} px");
+    assert!(worst < 0.25, "{worst}");
 }

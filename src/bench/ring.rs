@@ -6,7 +6,8 @@
 use super::accuracy::synthetic_session;
 use crate::geometry::Pose;
 use crate::pipeline::{calibrate, CalibOptions};
-use crate::result::Status;
+use crate::result::{ResultDocument, Status};
+use crate::synth::Truth;
 use nalgebra::Matrix6;
 
 #[derive(Clone, Debug, Default, serde::Serialize)]
@@ -31,25 +32,61 @@ fn err(est: &Pose, truth: &Pose) -> (f64, f64) {
     (r.to_degrees(), t * 1e3)
 }
 
-/// Run `trials` noisy sessions per noise level; one row per (noise, camera).
+/// Run `trials` noisy sessions per noise level; one row per (noise, camera). The noise
+/// is on the sampled line points (pixels).
 pub fn ring_accuracy(noise: &[f64], trials: usize, seed: u64) -> Vec<RingRow> {
+    study(noise, trials, |sigma, k| {
+        let (session, truth) = synthetic_session("wu-table2", seed + k as u64, sigma)?;
+        Some((calibrate(&session, &CalibOptions::default()), truth))
+    })
+}
+
+/// The same from rendered images through the line-target detector: the noise is
+/// grey-level noise of the 8-bit images (σ in grey levels), every trial 16 new renders.
+pub fn ring_accuracy_images(noise_grey: &[f64], trials: usize, seed: u64) -> Vec<RingRow> {
+    let (rig, aux, scene) = (
+        crate::synth::ring::rig_camera(),
+        crate::synth::ring::aux_camera(),
+        crate::synth::ring::table2_scene(),
+    );
+    study(noise_grey, trials, |sigma, k| {
+        let (manifest, truth, files) =
+            crate::synth::ring::image_session(&rig, &aux, &scene, sigma, seed + k as u64);
+        let session = crate::session::from_manifest(manifest).ok()?;
+        let source = crate::pipeline::detection::MemorySource(files.into_iter().collect());
+        let doc = crate::pipeline::run(
+            &session,
+            &source,
+            &CalibOptions::default(),
+            &crate::pipeline::Silent,
+        )
+        .ok()?;
+        Some((doc, truth))
+    })
+}
+
+/// Per noise level, `trials` runs of `trial(sigma, k)` (a result and its truth; `None`
+/// when no session could be made), accumulated per camera.
+fn study(
+    noise: &[f64],
+    trials: usize,
+    trial: impl Fn(f64, usize) -> Option<(ResultDocument, Truth)>,
+) -> Vec<RingRow> {
     let mut rows = Vec::new();
     for &sigma in noise {
         let mut acc: Vec<RingRow> = Vec::new();
         for k in 0..trials {
-            let Some((session, truth)) = synthetic_session("wu-table2", seed + k as u64, sigma)
-            else {
+            let Some((doc, truth)) = trial(sigma, k) else {
                 continue;
             };
-            let doc = calibrate(&session, &CalibOptions::default());
             let report = doc.vanishing.as_ref();
             if acc.is_empty() {
-                acc = session
-                    .cameras
-                    .iter()
+                acc = truth
+                    .ref_from_cam
+                    .keys()
                     .map(|c| RingRow {
                         sigma_px: sigma,
-                        camera: c.id.clone(),
+                        camera: c.clone(),
                         ..Default::default()
                     })
                     .collect();

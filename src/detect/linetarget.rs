@@ -54,6 +54,7 @@ const MIN_SIDE_PX: f64 = 8.0;
 const L_SIDES: SideSampling = SideSampling {
     corner_clearance: 0.06,
     room: |_, shortest| 0.25 * shortest,
+    corner_slack: 0.1,
 };
 
 /// Every line target in the image, ordered left to right (by the centroid of its

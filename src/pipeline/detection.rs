@@ -41,6 +41,18 @@ impl ImageSource for DirSource {
     }
 }
 
+/// Images held in memory by the path the manifest names them with (benches, tests).
+pub struct MemorySource(pub std::collections::HashMap<String, Vec<u8>>);
+
+impl ImageSource for MemorySource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        self.0
+            .get(&slot.path)
+            .cloned()
+            .ok_or_else(|| format!("no image {}", slot.path))
+    }
+}
+
 /// No images available (a session of detections only).
 pub struct NoImages;
 
@@ -50,7 +62,6 @@ impl ImageSource for NoImages {
     }
 }
 
-/// Does the session have AprilTag targets to look for?
 /// Whether this build can detect the session's targets: AprilTag boards, or the line
 /// targets of a vanishing session.
 fn detectable(session: &Session) -> bool {

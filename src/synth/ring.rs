@@ -12,7 +12,7 @@ use super::{camera_spec, Truth};
 use crate::calib::vanishing::target::{LineTarget, LINES};
 use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use crate::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
-use rand::Rng;
+use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use std::collections::BTreeMap;
 
@@ -190,6 +190,61 @@ pub fn render_line_targets(
         on_sheet.then_some(true)
     };
     crate::synth::render::render(camera, &(first * target_from_board), &shade, opts)
+}
+
+/// The ring as a session of images: `scene`'s 8 rig images (`rig/camK.png`, with
+/// `frames[0].line_targets`) and 8 auxiliary images (`aux/K.png`, each pair named left
+/// to right as the auxiliary camera sees it), rendered with grey-level noise
+/// `noise_grey`; no line points. Returns the manifest, the truth and the PNG files by
+/// path.
+pub fn image_session(
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+    noise_grey: f64,
+    seed: u64,
+) -> (SessionManifest, Truth, BTreeMap<String, Vec<u8>>) {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let (mut m, truth) = generate_with(&mut rng, 0.0, rig, aux, scene);
+    let opts = |k: u64| crate::synth::render::RenderOptions {
+        noise_sigma: noise_grey,
+        seed: seed.wrapping_mul(1000).wrapping_add(k),
+        ..Default::default()
+    };
+    let png = |img: image::GrayImage| {
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png)
+            .map(|_| out.into_inner())
+            .unwrap_or_default()
+    };
+    let mut files = BTreeMap::new();
+    let frame = &mut m.frames[0];
+    frame.lines.clear();
+    for k in 0..8 {
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+        let path = format!("rig/cam{}.png", k + 1);
+        let img = render_line_targets(rig, &[cam_from_target], &TARGET, &opts(k as u64));
+        files.insert(path.clone(), png(img));
+        frame.images.insert(format!("cam{}", k + 1), path);
+    }
+    let centre = TARGET.corners().iter().sum::<Vec3>() / LINES as f64;
+    for (k, r) in m.ring.iter_mut().enumerate() {
+        let j = (k + 1) % 8;
+        let poses = [k, j].map(|t| scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[t]);
+        let u = |p: &Pose| aux.project(&p.apply(&centre)).map_or(0.0, |q| q.x);
+        let (a, b) = (format!("t{}", k + 1), format!("t{}", j + 1));
+        r.targets = if u(&poses[0]) <= u(&poses[1]) {
+            vec![a, b]
+        } else {
+            vec![b, a]
+        };
+        let path = format!("aux/{k}.png");
+        let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + k as u64));
+        files.insert(path.clone(), png(img));
+        r.lines.clear();
+        r.image = Some(path);
+    }
+    (m, truth, files)
 }
 
 /// The `wu-table2` session and its truth.
