@@ -18,42 +18,62 @@ struct Asset {
     name: &'static str,
     content_type: &'static str,
     body: &'static str,
+    /// FNV-1a of the body, computed at compile time (the body never changes at run time).
+    checksum: u64,
 }
 
-const INDEX: &str = include_str!("assets/index.html");
+impl Asset {
+    const fn new(name: &'static str, content_type: &'static str, body: &'static str) -> Self {
+        Asset {
+            name,
+            content_type,
+            body,
+            checksum: fnv1a(body.as_bytes()),
+        }
+    }
+}
+
+const fn fnv1a(bytes: &[u8]) -> u64 {
+    let mut h = 0xcbf29ce484222325u64;
+    let mut i = 0;
+    while i < bytes.len() {
+        h = (h ^ bytes[i] as u64).wrapping_mul(0x100000001b3);
+        i += 1;
+    }
+    h
+}
+
+const INDEX: Asset = Asset::new(
+    "index.html",
+    "text/html; charset=utf-8",
+    include_str!("assets/index.html"),
+);
 
 const ASSETS: [Asset; 3] = [
-    Asset {
-        name: "app.js",
-        content_type: "text/javascript; charset=utf-8",
-        body: include_str!("assets/app.js"),
-    },
-    Asset {
-        name: "app.css",
-        content_type: "text/css; charset=utf-8",
-        body: include_str!("assets/app.css"),
-    },
-    Asset {
-        name: "favicon.svg",
-        content_type: "image/svg+xml",
-        body: include_str!("assets/favicon.svg"),
-    },
+    Asset::new(
+        "app.js",
+        "text/javascript; charset=utf-8",
+        include_str!("assets/app.js"),
+    ),
+    Asset::new(
+        "app.css",
+        "text/css; charset=utf-8",
+        include_str!("assets/app.css"),
+    ),
+    Asset::new(
+        "favicon.svg",
+        "image/svg+xml",
+        include_str!("assets/favicon.svg"),
+    ),
 ];
 
 /// Same-origin only: scripts, styles, images and connections to this server; no inline
 /// script, no framing. The figures are inserted as markup from our own API.
 const CSP: &str = "default-src 'none'; script-src 'self'; style-src 'self'; img-src 'self' data: blob:; connect-src 'self'; form-action 'self'; base-uri 'none'; frame-ancestors 'none'";
 
-/// Weak validator: the build's version and the asset's length and checksum.
-fn etag(body: &str) -> String {
-    let sum = body.bytes().fold(0xcbf29ce484222325u64, |h, b| {
-        (h ^ b as u64).wrapping_mul(0x100000001b3)
-    });
-    format!("W/\"{}-{:x}\"", env!("CARGO_PKG_VERSION"), sum)
-}
-
-fn serve(headers: &HeaderMap, content_type: &'static str, body: &'static str) -> Response {
-    let tag = etag(body);
+fn serve(headers: &HeaderMap, asset: &Asset) -> Response {
+    // Weak validator: the build's version and the asset's checksum.
+    let tag = format!("W/\"{}-{:x}\"", env!("CARGO_PKG_VERSION"), asset.checksum);
     let fresh = headers
         .get(header::IF_NONE_MATCH)
         .and_then(|v| v.to_str().ok())
@@ -61,7 +81,7 @@ fn serve(headers: &HeaderMap, content_type: &'static str, body: &'static str) ->
     let mut resp = if fresh {
         StatusCode::NOT_MODIFIED.into_response()
     } else {
-        ([(header::CONTENT_TYPE, content_type)], body).into_response()
+        ([(header::CONTENT_TYPE, asset.content_type)], asset.body).into_response()
     };
     let h = resp.headers_mut();
     h.insert(header::CACHE_CONTROL, HeaderValue::from_static("no-cache"));
@@ -81,13 +101,13 @@ fn serve(headers: &HeaderMap, content_type: &'static str, body: &'static str) ->
 
 /// `GET /`: the dashboard page.
 pub async fn index(headers: HeaderMap) -> Response {
-    serve(&headers, "text/html; charset=utf-8", INDEX)
+    serve(&headers, &INDEX)
 }
 
 /// `GET /assets/{name}`.
 pub async fn asset(headers: HeaderMap, Path(name): Path<String>) -> Response {
     match ASSETS.iter().find(|a| a.name == name) {
-        Some(a) => serve(&headers, a.content_type, a.body),
+        Some(a) => serve(&headers, a),
         None => crate::api::error::ApiError::new(
             StatusCode::NOT_FOUND,
             "not-found",

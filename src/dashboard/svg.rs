@@ -59,6 +59,12 @@ fn tick_step(range: f64, n: f64) -> f64 {
     }
 }
 
+/// The multiples of `step` in `[lo, hi]`.
+fn ticks(lo: f64, hi: f64, step: f64) -> impl Iterator<Item = f64> {
+    std::iter::successors(Some((lo / step).ceil() * step), move |v| Some(v + step))
+        .take_while(move |v| *v <= hi + 1e-9 * step)
+}
+
 fn fmt_tick(v: f64, step: f64) -> String {
     let decimals = (-step.log10().floor()).clamp(0.0, 6.0) as usize;
     format!("{v:.decimals$}")
@@ -94,8 +100,7 @@ impl Frame {
             self.x0, self.x0, self.y0, self.x0
         );
         let ys = tick_step(self.ymax - self.ymin, 4.0);
-        let mut v = (self.ymin / ys).ceil() * ys;
-        while v <= self.ymax + 1e-9 * ys {
+        for v in ticks(self.ymin, self.ymax, ys) {
             let y = self.py(v);
             let _ = write!(
                 svg,
@@ -105,15 +110,13 @@ impl Frame {
                 y + 4.0,
                 fmt_tick(v, ys)
             );
-            v += ys;
         }
         if xticks {
             let mut xs = tick_step(self.xmax - self.xmin, 6.0);
             if self.integer_x {
                 xs = xs.max(1.0);
             }
-            let mut v = (self.xmin / xs).ceil() * xs;
-            while v <= self.xmax + 1e-9 * xs {
+            for v in ticks(self.xmin, self.xmax, xs) {
                 let x = self.px(v);
                 let _ = write!(
                     svg,
@@ -122,7 +125,6 @@ impl Frame {
                     y1 + 16.0,
                     fmt_tick(v, xs)
                 );
-                v += xs;
             }
         }
         let _ = write!(

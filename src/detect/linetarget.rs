@@ -18,7 +18,8 @@
 use super::gray::Gray;
 use super::refine::{refine_polygon, Lens, SideSampling};
 use crate::calib::vanishing::target::{LINES, X_GROUP, Z_GROUP};
-use crate::geometry::Vec2;
+use crate::geometry::line2::vanishing_direction;
+use crate::geometry::{Mat3, Vec2};
 use serde::Serialize;
 
 /// One line target found in an image.
@@ -298,23 +299,13 @@ fn measure(img: &Gray, lens: Lens, rough: &[Vec2; LINES]) -> Option<LineTargetDe
     if r.contrast < 20.0 || r.edge_rms > 0.5 {
         return None;
     }
+    // The point nearest (least squares) to each group's three lines; in the plane the
+    // lines live in, so the identity stands for the intrinsics.
     let vp = |group: [usize; 3]| {
-        // The point nearest (least squares) to the three lines: smallest right singular
-        // vector of the stacked line coefficients.
-        let m = nalgebra::Matrix3::from_rows(&group.map(|k| {
-            let l = r.side_lines[k];
-            nalgebra::RowVector3::new(l[0], l[1], l[2])
-        }));
-        let svd = m.svd(false, true);
-        let v_t = svd.v_t?;
-        let (i, _) = svd
-            .singular_values
-            .iter()
-            .enumerate()
-            .min_by(|a, b| a.1.total_cmp(b.1))?;
-        let v = v_t.row(i).transpose();
-        let v = if v[2] < 0.0 { -v } else { v };
-        Some([v[0], v[1], v[2]])
+        let lines = group.map(|k| r.side_lines[k]);
+        let v = vanishing_direction(&lines, &Mat3::identity())?;
+        let v = if v.z < 0.0 { -v } else { v };
+        Some([v.x, v.y, v.z])
     };
     Some(LineTargetDetection {
         corners: std::array::from_fn(|k| [r.corners[k].x, r.corners[k].y]),
@@ -322,7 +313,7 @@ fn measure(img: &Gray, lens: Lens, rough: &[Vec2; LINES]) -> Option<LineTargetDe
             .map(|k| DetectedLine {
                 line: k + 1,
                 points: r.side_points[k].iter().map(|p| [p.x, p.y]).collect(),
-                plane_line: r.side_lines[k],
+                plane_line: r.side_lines[k].into(),
             })
             .collect(),
         vanishing_points: [vp(Z_GROUP)?, vp(X_GROUP)?],

@@ -12,6 +12,7 @@
 //! the second sampling along the first's sides.
 
 use super::gray::Gray;
+use crate::geometry::line2::{distance, fit_line, intersect};
 use crate::geometry::{Camera, Vec2, Vec3};
 
 /// Maps between raw pixels and the plane where a tag's sides are straight.
@@ -52,42 +53,6 @@ pub struct Refined {
     pub edge_rms: f64,
     /// Mean grey-level step across the sides (white − black).
     pub contrast: f64,
-}
-
-/// A line `n · p = c` with `|n| = 1`.
-#[derive(Clone, Copy, Debug)]
-struct Line {
-    n: Vec2,
-    c: f64,
-}
-
-fn fit_line(pts: &[Vec2]) -> Option<Line> {
-    if pts.len() < 2 {
-        return None;
-    }
-    let m = pts.iter().sum::<Vec2>() / pts.len() as f64;
-    let (mut sxx, mut sxy, mut syy) = (0.0, 0.0, 0.0);
-    for p in pts {
-        let d = p - m;
-        sxx += d.x * d.x;
-        sxy += d.x * d.y;
-        syy += d.y * d.y;
-    }
-    // Normal = eigenvector of the smaller eigenvalue of the scatter matrix.
-    let theta = 0.5 * (2.0 * sxy).atan2(sxx - syy);
-    let n = Vec2::new(-theta.sin(), theta.cos());
-    Some(Line { n, c: n.dot(&m) })
-}
-
-fn intersect(a: Line, b: Line) -> Option<Vec2> {
-    let det = a.n.x * b.n.y - a.n.y * b.n.x;
-    if det.abs() < 1e-12 {
-        return None;
-    }
-    Some(Vec2::new(
-        (a.c * b.n.y - a.n.y * b.c) / det,
-        (a.n.x * b.c - a.c * b.n.x) / det,
-    ))
 }
 
 /// Where along the profile `s ↦ I(p + s·n)` (dark at `s < 0`, bright at `s > 0`) the
@@ -166,8 +131,8 @@ pub struct RefinedPolygon {
     pub corners: Vec<Vec2>,
     /// Per side (from corner k to k+1): the edge points kept by the fit, raw pixels.
     pub side_points: Vec<Vec<Vec2>>,
-    /// Per side: `n · q = c` in the plane (`|n| = 1`), as `[n.x, n.y, −c]`.
-    pub side_lines: Vec<[f64; 3]>,
+    /// Per side: `[a, b, c]` with `a·x + b·y + c = 0`, `a² + b² = 1`, in the plane.
+    pub side_lines: Vec<Vec3>,
     pub edge_rms: f64,
     pub contrast: f64,
 }
@@ -212,7 +177,7 @@ pub fn refine_polygon(
             .map(|q| lens.to_pixel(*q))
             .collect::<Option<_>>()?,
         side_points: pass.side_points,
-        side_lines: pass.lines.iter().map(|l| [l.n.x, l.n.y, -l.c]).collect(),
+        side_lines: pass.lines,
         edge_rms: pass.edge_rms,
         contrast: pass.contrast,
     })
@@ -220,7 +185,7 @@ pub fn refine_polygon(
 
 struct Pass {
     corners: Vec<Vec2>,
-    lines: Vec<Line>,
+    lines: Vec<Vec3>,
     side_points: Vec<Vec<Vec2>>,
     edge_rms: f64,
     contrast: f64,
@@ -293,7 +258,7 @@ fn refine_once(
         let scale = len_px / (b - a).norm().max(1e-300);
         let res: Vec<f64> = plane_pts
             .iter()
-            .map(|q| (line.n.dot(q) - line.c).abs() * scale)
+            .map(|q| distance(&line, q).abs() * scale)
             .collect();
         let mut sorted = res.clone();
         sorted.sort_by(|x, y| x.total_cmp(y));
@@ -310,7 +275,7 @@ fn refine_once(
         }
         let kept = if kept.len() >= 4 { kept } else { pts };
         for (q, _) in &kept {
-            let r = (line.n.dot(q) - line.c) * scale;
+            let r = distance(&line, q) * scale;
             sq += r * r;
             count += 1;
         }
@@ -320,7 +285,7 @@ fn refine_once(
     let mut out = Vec::with_capacity(n_sides);
     for k in 0..n_sides {
         // Corner k joins side k−1 (from corner k−1) and side k (to corner k+1).
-        out.push(intersect(lines[(k + n_sides - 1) % n_sides], lines[k])?);
+        out.push(intersect(&lines[(k + n_sides - 1) % n_sides], &lines[k])?);
     }
     // A refined polygon far from its start is a different edge, not a refinement.
     for k in 0..n_sides {
@@ -346,7 +311,7 @@ mod tests {
     fn lines_fit_and_intersect_in_any_orientation() {
         let v: Vec<Vec2> = (0..10).map(|i| Vec2::new(3.0, i as f64)).collect();
         let h: Vec<Vec2> = (0..10).map(|i| Vec2::new(i as f64, -2.0)).collect();
-        let p = intersect(fit_line(&v).unwrap(), fit_line(&h).unwrap()).unwrap();
+        let p = intersect(&fit_line(&v).unwrap(), &fit_line(&h).unwrap()).unwrap();
         assert!((p - Vec2::new(3.0, -2.0)).norm() < 1e-12);
     }
 }

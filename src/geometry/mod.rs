@@ -5,6 +5,7 @@
 //! check every Jacobian against finite differences.
 
 pub mod camera;
+pub mod line2;
 pub mod pose;
 pub mod so3;
 

@@ -7,7 +7,6 @@
 //! optimisation of all targets and auxiliary views (eq. 25) → camera extrinsics (eq. 26).
 
 pub mod bundle;
-pub mod lines;
 pub mod pose;
 pub mod ring;
 pub mod target;

@@ -17,8 +17,8 @@
 //! every corner in front of the camera with the smallest corner reprojection error.
 
 use super::bundle::{LineBundle, LinePoints};
-use super::lines::{fit_line, intersect, vanishing_direction};
 use super::target::{LineTarget, LINES, X_GROUP, Z_GROUP};
+use crate::geometry::line2::{fit_line, intersect, vanishing_direction};
 use crate::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
 use crate::solver::Loss;
 use nalgebra::DMatrix;

@@ -1,4 +1,5 @@
-//! Image lines: total-least-squares fits, intersections, vanishing points.
+//! Image lines: total-least-squares fits, intersections, vanishing points. One home for
+//! both the vanishing method (feature lines) and detection (tag and line-target sides).
 //!
 //! Lines are homogeneous `(a, b, c)` with `a·u + b·v + c = 0` and `a² + b² = 1`, so
 //! `l·(u, v, 1)` is the signed distance in pixels. The fit is total least squares (the
