@@ -230,6 +230,10 @@ enum BenchCommand {
         poses: Vec<usize>,
         #[arg(long, default_value_t = 100)]
         points: usize,
+        /// Also write each problem with rigcal's result as `ba_K.json` here, for
+        /// `benches/peers/colmap_ba.py`.
+        #[arg(long)]
+        export: Option<PathBuf>,
     },
 }
 
@@ -457,6 +461,7 @@ fn run() -> Result<i32> {
                     cameras,
                     poses,
                     points,
+                    export,
                 },
         } => {
             if cameras < 2 || points < 10 || poses.iter().any(|k| *k < 3) {
@@ -464,7 +469,8 @@ fn run() -> Result<i32> {
                     "--cameras ≥ 2, --points ≥ 10 and every --poses ≥ 3"
                 ));
             }
-            let rows = rigcal::bench::speed::run(cameras, &poses, points);
+            let rows = rigcal::bench::speed::run(cameras, &poses, points, export.as_deref())
+                .context("writing the exported problems")?;
             rigcal::bench::speed::print_table(cameras, points, &rows);
             Ok(0)
         }

@@ -297,8 +297,10 @@ fn uncertainty_is_honest_and_the_estimate_reaches_the_cramer_rao_bound() {
 
 #[test]
 fn a_noisy_loop_is_right_or_says_it_failed() {
-    // All four scenes merge into one 360° scene here; its reconstruction can fold. A
-    // folded result must be reported as failed, never returned as a success.
+    // All four scenes merge into one 360° scene here. Its incremental reconstruction used
+    // to fold in 10-15 % of noisy trials; since the start/triangulation/resection rules,
+    // the split of an unreachable rest and the verified eigen-decomposition, 1 in 100
+    // (bench accuracy, 50 trials at 0.5 and 1 px). Whatever fails must say so.
     let mut answered = 0;
     for seed in 0..10 {
         let (doc, truth) = run("car-planar-loop", 1000 + seed, 0.5);
@@ -329,5 +331,5 @@ fn a_noisy_loop_is_right_or_says_it_failed() {
             );
         }
     }
-    assert!(answered >= 7, "only {answered} of 10 loops answered");
+    assert!(answered >= 9, "only {answered} of 10 loops answered");
 }

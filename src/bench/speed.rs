@@ -137,18 +137,35 @@ pub struct SpeedRow {
     pub extrinsic_error_mm: f64,
 }
 
-pub fn run(cameras: usize, poses: &[usize], points: usize) -> Vec<SpeedRow> {
+/// The stopping rule of the benchmark; exported with the problem so a peer solver can be
+/// given the same tolerances.
+pub fn bench_options() -> LmOptions {
+    LmOptions {
+        max_iterations: 50,
+        function_tolerance: 1e-10,
+        parameter_tolerance: 1e-10,
+        gradient_tolerance: 1e-10,
+        ..LmOptions::default()
+    }
+}
+
+/// Run the benchmark for each K. With `export`, each problem is also written as
+/// `ba_K.json` there (start, observations, rigcal's final state and summary), so that a
+/// peer bundle adjuster (`benches/peers/colmap_ba.py`) solves the identical problem from
+/// the identical start and both end states can be scored by one cost function.
+pub fn run(
+    cameras: usize,
+    poses: &[usize],
+    points: usize,
+    export: Option<&std::path::Path>,
+) -> std::io::Result<Vec<SpeedRow>> {
     poses
         .iter()
         .map(|&k| {
             let (mut p, truth) = problem(cameras, k, points, 7);
-            let summary = p.solve(&LmOptions {
-                max_iterations: 50,
-                function_tolerance: 1e-10,
-                parameter_tolerance: 1e-10,
-                gradient_tolerance: 1e-10,
-                ..LmOptions::default()
-            });
+            let start = export.map(|_| state_json(&p));
+            let options = bench_options();
+            let summary = p.solve(&options);
             // Scale is free in this problem (no distances); compare up to scale via the
             // direction-insensitive rotation and the scale-corrected translation.
             let s = truth[1].trans.norm() / p.rig_from_cam[1].trans.norm();
@@ -156,14 +173,95 @@ pub fn run(cameras: usize, poses: &[usize], points: usize) -> Vec<SpeedRow> {
                 .map(|c| ((p.rig_from_cam[c].trans * s) - truth[c].trans).norm())
                 .fold(0.0, f64::max)
                 * 1e3;
-            SpeedRow {
+            if let (Some(dir), Some(start)) = (export, start) {
+                write_export(dir, k, &p, start, &summary, &options)?;
+            }
+            Ok(SpeedRow {
                 poses: k,
                 observations: p.observations.len(),
                 summary,
                 extrinsic_error_mm: err,
-            }
+            })
         })
         .collect()
+}
+
+/// A pose as its 3×3 rotation (row-major) then translation: matrices, not quaternions,
+/// so no convention (wxyz vs xyzw, active vs passive) can be crossed on the way out.
+fn pose_json(p: &Pose) -> serde_json::Value {
+    let r = &p.rot;
+    serde_json::json!([
+        r[(0, 0)],
+        r[(0, 1)],
+        r[(0, 2)],
+        r[(1, 0)],
+        r[(1, 1)],
+        r[(1, 2)],
+        r[(2, 0)],
+        r[(2, 1)],
+        r[(2, 2)],
+        p.trans.x,
+        p.trans.y,
+        p.trans.z
+    ])
+}
+
+/// The variable part of a problem: extrinsics (`ref_from_cam`), rig poses
+/// (`world_from_ref`) and points.
+fn state_json(p: &BundleProblem) -> serde_json::Value {
+    serde_json::json!({
+        "ref_from_cam": p.rig_from_cam.iter().map(pose_json).collect::<Vec<_>>(),
+        "world_from_ref": p.world_from_rig.iter().map(pose_json).collect::<Vec<_>>(),
+        "points": p.points.iter().map(|x| [x.x, x.y, x.z]).collect::<Vec<_>>(),
+    })
+}
+
+fn write_export(
+    dir: &std::path::Path,
+    k: usize,
+    p: &BundleProblem,
+    start: serde_json::Value,
+    summary: &BundleSummary,
+    options: &LmOptions,
+) -> std::io::Result<()> {
+    let cam = &p.cameras[0];
+    let observations: Vec<_> = p
+        .observations
+        .iter()
+        .map(|o| {
+            let PointRef::Free(i) = o.point else {
+                unreachable!("the speed benchmark has free points only")
+            };
+            serde_json::json!([o.rig, o.cam, i, o.uv.x, o.uv.y])
+        })
+        .collect();
+    let doc = serde_json::json!({
+        "model": "pinhole",
+        "intrinsics": [cam.fx, cam.fy, cam.cx, cam.cy],
+        "width": cam.width,
+        "height": cam.height,
+        "fixed": {"camera": 0, "rig_pose": 0},
+        "cost": "0.5 * sum of squared pixel residuals, no robust loss",
+        "tolerances": {
+            "max_iterations": options.max_iterations,
+            "function": options.function_tolerance,
+            "parameter": options.parameter_tolerance,
+            "gradient": options.gradient_tolerance,
+        },
+        "start": start,
+        "observations": observations,
+        "rigcal": {
+            "seconds": summary.seconds,
+            "iterations": summary.iterations,
+            "initial_cost": summary.initial_cost,
+            "final_cost": summary.final_cost,
+            "termination": summary.termination,
+            "final": state_json(p),
+        },
+    });
+    std::fs::create_dir_all(dir)?;
+    let file = std::fs::File::create(dir.join(format!("ba_{k}.json")))?;
+    serde_json::to_writer(std::io::BufWriter::new(file), &doc).map_err(std::io::Error::other)
 }
 
 pub fn print_table(cameras: usize, points: usize, rows: &[SpeedRow]) {

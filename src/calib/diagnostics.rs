@@ -25,7 +25,7 @@ fn is_unobservable(l: f64, lmax: f64, decision_sigma: f64) -> bool {
 /// Unit directions of the joint extrinsic space that the information `info` (unit
 /// pixel noise) does not determine at pixel noise `decision_sigma`.
 pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<f64>> {
-    let eig = ((info + info.transpose()) * 0.5).symmetric_eigen();
+    let eig = crate::solver::eigen::symmetric_eigen(info);
     let lmax = eig.eigenvalues.amax().max(1e-300);
     (0..info.nrows())
         .filter(|&k| is_unobservable(eig.eigenvalues[k], lmax, decision_sigma))
@@ -46,7 +46,7 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
     let (cams, info) = ba.information.clone()?;
     let n = info.nrows();
     let sym = (&info + info.transpose()) * 0.5;
-    let eig = sym.clone().symmetric_eigen();
+    let eig = crate::solver::eigen::symmetric_eigen(&sym);
     let lmax = eig.eigenvalues.amax().max(1e-300);
     let sigma = if ba.sigma_px.is_finite() {
         ba.sigma_px
@@ -76,10 +76,8 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
         .collect();
     let per_camera_eigen = (0..cams.len())
         .map(|i| {
-            let b = sym
-                .view((6 * i, 6 * i), (6, 6))
-                .into_owned()
-                .symmetric_eigen();
+            let b = sym.view((6 * i, 6 * i), (6, 6)).into_owned();
+            let b = crate::solver::eigen::symmetric_eigen(&b);
             let mut e: Vec<f64> = b.eigenvalues.iter().copied().collect();
             e.sort_by(|a, b| b.total_cmp(a));
             e

@@ -25,6 +25,8 @@ pub struct InitOutput {
     pub ref_from_cam: Vec<Pose>,
     pub world_from_rig: Vec<Option<Pose>>,
     pub world_from_scene: Vec<Option<Pose>>,
+    /// Factor taking each scene's coordinates to metres (1 for metric scenes).
+    pub scene_scale: Vec<f64>,
     pub motion: MotionReport,
     /// Motion pairs used in eq. 6, and those dropped as uninformative.
     pub pairs_used: usize,
@@ -333,7 +335,23 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         .collect();
     let nfw = frame_col.iter().flatten().count();
     let scene_col = |s: usize| ncx + nfw + s;
-    let dim = 3 * (ncx + nfw + ns);
+    // A scene without measured distances (one a long chain was split into) has its own
+    // scale: an unknown factor on its poses, solved with the rest. Only when some scene
+    // is metric; otherwise the overall scale has no anchor and every scene keeps its own.
+    let any_metric = traj.scenes.iter().any(|s| s.metric && !s.poses.is_empty());
+    let scale_col: Vec<Option<usize>> = traj
+        .scenes
+        .iter()
+        .scan(0, |n, sc| {
+            Some(if any_metric && !sc.metric && !sc.poses.is_empty() {
+                *n += 1;
+                Some(3 * (ncx + nfw + ns) + *n - 1)
+            } else {
+                None
+            })
+        })
+        .collect();
+    let dim = 3 * (ncx + nfw + ns) + scale_col.iter().flatten().count();
     let mut ata = DMatrix::<f64>::zeros(dim, dim);
     let mut atb = DVector::<f64>::zeros(dim);
     let mut any_foreign = BTreeSet::new();
@@ -342,28 +360,33 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             continue;
         };
         any_foreign.insert((s, c));
-        // t_S − t_W − R_W t_X = R_W R_X t_P
-        let mut blocks: Vec<(usize, Mat3)> = vec![(scene_col(s), Mat3::identity())];
+        // t_S − t_W − R_W t_X = σ_S R_W R_X t_P  (σ_S = 1 for metric scenes)
+        let mut cols: Vec<(usize, Vec3)> = Vec::with_capacity(10);
+        let mut block = |b: usize, m: Mat3| {
+            for a in 0..3 {
+                cols.push((3 * b + a, m.column(a).into()));
+            }
+        };
+        block(scene_col(s), Mat3::identity());
         if let Some(fc) = frame_col[f] {
-            blocks.push((fc, -Mat3::identity()));
+            block(fc, -Mat3::identity());
         }
         if let Some(cc) = cam_col[c] {
-            blocks.push((cc, -w));
+            block(cc, -w);
         }
-        let rhs = w * rot[c] * p.trans;
-        for (i, bi) in &blocks {
-            for (j, bj) in &blocks {
-                let blk = bi.transpose() * bj;
-                for a in 0..3 {
-                    for b in 0..3 {
-                        ata[(3 * i + a, 3 * j + b)] += blk[(a, b)];
-                    }
-                }
+        let v = w * rot[c] * p.trans;
+        let rhs = match scale_col[s] {
+            Some(k) => {
+                cols.push((k, -v));
+                Vec3::zeros()
             }
-            let g = bi.transpose() * rhs;
-            for a in 0..3 {
-                atb[3 * i + a] += g[a];
+            None => v,
+        };
+        for (i, ci) in &cols {
+            for (j, cj) in &cols {
+                ata[(*i, *j)] += ci.dot(cj);
             }
+            atb[*i] += ci.dot(&rhs);
         }
     }
     let permutation = {
@@ -430,6 +453,13 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             Some(Pose::new(w, t))
         })
         .collect();
+    let scene_scale: Vec<f64> = scale_col
+        .iter()
+        .map(|k| match k {
+            Some(k) if x[*k].is_finite() && x[*k] > 0.0 => x[*k],
+            _ => 1.0,
+        })
+        .collect();
     let world_from_scene = (0..ns)
         .map(|s| {
             let sc = scene_col(s);
@@ -440,6 +470,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         ref_from_cam,
         world_from_rig,
         world_from_scene,
+        scene_scale,
         motion,
         pairs_used: stats.0,
         pairs_dropped_small: stats.1,

@@ -22,16 +22,16 @@ pub fn principal_axes(pts: &[Vec3]) -> (Vec3, Mat3, Vec3) {
         let d = p - c;
         cov += d * d.transpose();
     }
-    let eig = cov.symmetric_eigen();
+    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&cov);
     let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| eig.eigenvalues[b].total_cmp(&eig.eigenvalues[a]));
-    let e1: Vec3 = eig.eigenvectors.column(order[0]).into();
-    let e2: Vec3 = eig.eigenvectors.column(order[1]).into();
+    order.sort_by(|&a, &b| values[b].total_cmp(&values[a]));
+    let e1: Vec3 = vectors.column(order[0]).into();
+    let e2: Vec3 = vectors.column(order[1]).into();
     let e3 = e1.cross(&e2);
     let sv = Vec3::new(
-        eig.eigenvalues[order[0]].max(0.0).sqrt(),
-        eig.eigenvalues[order[1]].max(0.0).sqrt(),
-        eig.eigenvalues[order[2]].max(0.0).sqrt(),
+        values[order[0]].max(0.0).sqrt(),
+        values[order[1]].max(0.0).sqrt(),
+        values[order[2]].max(0.0).sqrt(),
     );
     (c, Mat3::from_columns(&[e1, e2, e3]), sv)
 }
@@ -111,7 +111,7 @@ pub fn normalizer(p: &[Vec2]) -> (Mat3, Vec<Vec2>) {
 /// Right singular vector of the smallest singular value (via the 9×9 or 12×12 normal matrix).
 pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
     let ata = m.transpose() * m;
-    let eig = ata.symmetric_eigen();
+    let eig = crate::solver::eigen::symmetric_eigen(&ata);
     let k = eig
         .eigenvalues
         .iter()

@@ -123,13 +123,15 @@ pub fn refine(
         let Some(w_from_s) = init.world_from_scene[s] else {
             continue;
         };
+        let scale = init.scene_scale.get(s).copied().unwrap_or(1.0);
         for (p, x) in &scene.points {
             point_index.insert(*p, points.len());
-            points.push(w_from_s.apply(x));
+            points.push(w_from_s.apply(&(x * scale)));
         }
         for (b, s_from_b) in &scene.bodies {
             body_index.insert(*b, bodies.len());
-            bodies.push(w_from_s * *s_from_b);
+            bodies
+                .push(w_from_s * crate::geometry::Pose::new(s_from_b.rot, s_from_b.trans * scale));
         }
     }
     let point_ref =

@@ -33,6 +33,9 @@ pub struct SceneRecon {
     /// Robust pixel noise σ of the scene bundle adjustment (median-based, so a few
     /// gross outliers do not inflate it).
     pub sigma_px: f64,
+    /// The scene this one was split from (the part a long chain could not reach); its
+    /// scale comes from the motions it shares with that scene, not from distances.
+    pub part_of: Option<usize>,
 }
 
 #[derive(Clone, Debug)]
@@ -143,12 +146,20 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
             .count()
     };
     order.sort_by_key(|&s| std::cmp::Reverse(ref_count(s)));
+    let mut scene_of_point = scene_of_point;
     let mut scenes: Vec<Option<SceneRecon>> = vec![None; n_scenes];
     let mut failed_scenes = Vec::new();
     let mut reference_poses: BTreeMap<usize, Pose> = BTreeMap::new();
-    for s in order {
+    let mut queue: std::collections::VecDeque<(usize, Option<usize>)> =
+        order.into_iter().map(|s| (s, None)).collect();
+    while let Some((s, part_of)) = queue.pop_front() {
+        let is_rest = part_of.is_some();
         match reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses) {
-            Ok(r) => {
+            Ok(mut r) => {
+                r.part_of = part_of;
+                if is_rest && !r.metric {
+                    r.metric = scale_from_shared_motion(&mut r, scenes.iter().flatten());
+                }
                 if reference_poses.is_empty() {
                     reference_poses = r
                         .poses
@@ -157,8 +168,18 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                         .map(|(k, p)| (k.0, *p))
                         .collect();
                 }
+                // A long chain (a 360° loop) may stop growing where the images that
+                // would carry it on share too few points with what is built. The rest
+                // becomes a scene of its own; the images that see both tie the two
+                // frames together, as after a U-turn.
+                if let Some(rest) = split_rest(session, &mut scene_of_point, s, &r, scenes.len()) {
+                    scenes.push(None);
+                    queue.push_back((rest, Some(part_of.unwrap_or(s))));
+                }
                 scenes[s] = Some(r);
             }
+            // The unreconstructed rest of a scene is data left unused, not a failure.
+            Err(_) if is_rest => {}
             Err(e) => failed_scenes.push((s, e)),
         }
     }
@@ -171,6 +192,7 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 poses: BTreeMap::new(),
                 metric: false,
                 sigma_px: f64::NAN,
+                part_of: None,
             })
         })
         .collect();
@@ -179,6 +201,75 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
         scenes,
         failed_scenes,
     })
+}
+
+/// Bring a scene without measured distances to metres through the camera motions it
+/// shares with metric scenes: a camera's motion between two frames is the same whatever
+/// scene it is measured in, only its length scales with the scene. Median of the length
+/// ratios over every (camera, frame pair) posed in both; returns whether any existed.
+fn scale_from_shared_motion<'a>(
+    r: &mut SceneRecon,
+    metric: impl Iterator<Item = &'a SceneRecon>,
+) -> bool {
+    let mut ratios = Vec::new();
+    for m in metric.filter(|m| m.metric) {
+        let shared: Vec<&ImageKey> = r.poses.keys().filter(|k| m.poses.contains_key(k)).collect();
+        for (i, a) in shared.iter().enumerate() {
+            for b in &shared[i + 1..] {
+                if a.1 != b.1 {
+                    continue;
+                }
+                let len = |p: &BTreeMap<ImageKey, Pose>| (p[b] * p[a].inverse()).trans.norm();
+                let (here, there) = (len(&r.poses), len(&m.poses));
+                if here > 1e-9 && there > 1e-3 {
+                    ratios.push(there / here);
+                }
+            }
+        }
+    }
+    let Some(s) = median(ratios) else {
+        return false;
+    };
+    for p in r.poses.values_mut() {
+        p.trans *= s;
+    }
+    for x in r.points.values_mut() {
+        *x *= s;
+    }
+    true
+}
+
+/// Free points of scene `s` that its reconstruction `r` left out, relabelled as scene
+/// `next` if there are enough of them, seen by enough images, for a two-view start.
+fn split_rest(
+    session: &Session,
+    scene_of_point: &mut [Option<usize>],
+    s: usize,
+    r: &SceneRecon,
+    next: usize,
+) -> Option<usize> {
+    let kinds = &session.points.kinds;
+    let rest: Vec<usize> = (0..scene_of_point.len())
+        .filter(|&p| {
+            scene_of_point[p] == Some(s)
+                && kinds[p] == PointKind::Free
+                && !r.points.contains_key(&p)
+        })
+        .collect();
+    let is_rest: std::collections::HashSet<usize> = rest.iter().copied().collect();
+    let images_seeing_enough = session
+        .frames
+        .iter()
+        .flat_map(|f| f.observations.iter())
+        .filter(|obs| obs.iter().filter(|o| is_rest.contains(&o.point)).count() >= 8)
+        .count();
+    if images_seeing_enough < 2 {
+        return None;
+    }
+    for p in rest {
+        scene_of_point[p] = Some(next);
+    }
+    Some(next)
 }
 
 /// Observations of scene `s` per image.
@@ -324,10 +415,15 @@ fn reconstruct_scene(
                 m,
             ));
         }
+        // A folded reconstruction of a long chain can cover more than a correct one that
+        // stopped short, but it fits worse: among the starts that cover most of the
+        // scene, only those fitting about as well as the best one compete.
         let max_cover = tried.iter().map(|t| t.0).max().unwrap_or(0);
+        tried.retain(|t| t.0 as f64 >= START_COVER_SHARE * max_cover as f64);
+        let best_sigma = tried.iter().map(|t| t.2).fold(f64::INFINITY, f64::min);
         let chosen = tried
             .into_iter()
-            .filter(|t| t.0 as f64 >= 0.9 * max_cover as f64)
+            .filter(|t| t.2 <= START_SIGMA_RATIO * best_sigma)
             .min_by(|a, b| a.1.total_cmp(&b.1).then(a.2.total_cmp(&b.2)));
         if let Some((_, _, sigma, p, x, m)) = chosen {
             return Ok(SceneRecon {
@@ -336,6 +432,7 @@ fn reconstruct_scene(
                 poses: p,
                 metric: m,
                 sigma_px: sigma,
+                part_of: None,
             });
         }
     }
@@ -356,11 +453,12 @@ fn reconstruct_scene(
         poses,
         metric,
         sigma_px,
+        part_of: None,
     })
 }
 
-/// Triangulate free points seen by ≥ 2 posed images and resect images from known
-/// points, for at most `rounds` rounds or until neither grows. Returns whether it grew.
+/// One round of growth: triangulate free points seen by ≥ 2 posed images, then resect
+/// images from known points. Returns whether it grew.
 fn grow(
     images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
     kinds: &[PointKind],
@@ -368,11 +466,10 @@ fn grow(
     poses: &mut BTreeMap<ImageKey, Pose>,
     points: &mut BTreeMap<usize, Vec3>,
     bodies: &BTreeMap<usize, Pose>,
-    rounds: usize,
 ) -> bool {
     let start = (poses.len(), points.len());
-    for _ in 0..rounds {
-        let before = (poses.len(), points.len());
+    {
+        let before = start;
         let mut rays: BTreeMap<usize, Vec<(Pose, Vec2)>> = BTreeMap::new();
         for (key, obs) in images {
             if let Some(p) = poses.get(key) {
@@ -394,33 +491,44 @@ fn grow(
                         .iter()
                         .map(|(p, _)| twoview::parallax(&views[0].0, p, &x))
                         .fold(0.0, f64::max);
-                    if ok && par > 0.25f64.to_radians() {
+                    if ok && par > MIN_TRIANGULATION_PARALLAX {
                         points.insert(pt, x);
                     }
                 }
             }
         }
+        // Resect only from a good share of what the image sees: a pose from the few
+        // points a young reconstruction shares with it is poorly determined, and the
+        // points triangulated from it next would fold the scene. When no image
+        // qualifies, the single best-covered one goes next (next best view), so growth
+        // crosses from one part of a scene to the next one image at a time.
+        let mut candidates = Vec::new();
         for (key, obs) in images {
             if poses.contains_key(key) {
                 continue;
             }
-            let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
-                .iter()
-                .filter_map(|(p, uv)| match kinds[*p] {
-                    PointKind::Free => points.get(p).map(|x| (*x, *uv)),
-                    PointKind::Body { body, local } => {
-                        bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
-                    }
-                })
-                .unzip();
+            let (local, uv) = known_points(obs, kinds, points, bodies);
             if local.len() >= 6 || (local.len() >= 4 && pnp::is_planar(&local)) {
-                if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
-                    poses.insert(*key, p);
-                }
+                let enough = local.len() * 2 >= obs.len() || local.len() >= RESECT_ENOUGH;
+                candidates.push((enough, local.len(), *key, local, uv));
             }
         }
-        if (poses.len(), points.len()) == before {
-            break;
+        let any_enough = candidates.iter().any(|c| c.0);
+        if !any_enough && points.len() == before.1 {
+            // Nothing qualifies and nothing new was triangulated: take the best one.
+            if let Some(best) = candidates
+                .iter_mut()
+                .max_by_key(|c| (c.1, std::cmp::Reverse(c.2)))
+            {
+                best.0 = true;
+            }
+        }
+        for (enough, _, key, local, uv) in candidates {
+            if enough {
+                if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
+                    poses.insert(key, p);
+                }
+            }
         }
     }
     (poses.len(), points.len()) != start
@@ -445,7 +553,7 @@ fn grow_and_refine(
     let cams: Vec<_> = session.cameras.iter().map(|c| c.camera.clone()).collect();
     let mut last = (0usize, 0usize);
     for _ in 0..100 {
-        if !grow(images, kinds, &cams, poses, points, bodies, 1) {
+        if !grow(images, kinds, &cams, poses, points, bodies) {
             break;
         }
         let (np, nx) = (poses.len(), points.len());
@@ -461,6 +569,21 @@ fn grow_and_refine(
         *metric = apply_scale(session, poses, points);
     }
     refine_scene(session, images, poses, points, bodies, has_bodies, opts)
+}
+
+/// An image's observations of points already placed: (scene coordinates, pixels).
+fn known_points(
+    obs: &[(usize, Vec2)],
+    kinds: &[PointKind],
+    points: &BTreeMap<usize, Vec3>,
+    bodies: &BTreeMap<usize, Pose>,
+) -> (Vec<Vec3>, Vec<Vec2>) {
+    obs.iter()
+        .filter_map(|(p, uv)| match kinds[*p] {
+            PointKind::Free => points.get(p).map(|x| (*x, *uv)),
+            PointKind::Body { body, local } => bodies.get(&body).map(|sb| (sb.apply(&local), *uv)),
+        })
+        .unzip()
 }
 
 /// Scale a scene of unknown geometry to metres from the measured distances between its
@@ -520,6 +643,22 @@ fn angle_mismatch(
     median(d).unwrap_or(0.0)
 }
 
+/// Widest ray angle (rad) a free point needs before it is triangulated (COLMAP's 1.5°):
+/// depth from narrower rays is mostly noise, and images resected from such points start
+/// the fold of a long chain (a 360° loop) that no later adjustment undoes.
+const MIN_TRIANGULATION_PARALLAX: f64 = 1.5 * std::f64::consts::PI / 180.0;
+
+/// Share of the best coverage (points + posed images) a start must reach to compete.
+const START_COVER_SHARE: f64 = 0.75;
+/// Ratio to the best σ beyond which a start's reconstruction counts as folded.
+const START_SIGMA_RATIO: f64 = 1.1;
+
+/// Known points from which an image is resected whatever share of its points they are.
+const RESECT_ENOUGH: usize = 12;
+
+/// Median parallax (rad) above which a two-view start is not preferred for being wider.
+const START_PARALLAX_ENOUGH: f64 = 0.05;
+
 /// Image pairs to start a scene of unknown geometry from: ≥ 8 shared points, ranked by
 /// median parallax × √count. Returns up to `n` of `(key a, key b, cam_b_from_cam_a)`.
 fn best_pairs(
@@ -566,7 +705,11 @@ fn best_pairs(
             if (pars.len() as f64) < 0.8 * x1.len() as f64 {
                 continue;
             }
-            let score = median(pars).unwrap_or(0.0) * (x1.len() as f64).sqrt();
+            // Parallax beyond a few degrees adds little to the start's depth accuracy,
+            // while every shared point is one more to resect the next images from: a
+            // wide pair sharing 8 points starts a reconstruction nothing else can join.
+            let par = median(pars).unwrap_or(0.0).min(START_PARALLAX_ENOUGH);
+            let score = par * x1.len() as f64;
             if score > 0.0 {
                 ranked.push((score, *keys[i], *keys[j], rel));
             }
@@ -659,4 +802,56 @@ fn refine_scene(
         .map(|r| r.norm())
         .collect();
     robust_sigma(&norms).unwrap_or(f64::NAN)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn scene(poses: &[(ImageKey, Pose)], metric: bool) -> SceneRecon {
+        SceneRecon {
+            points: BTreeMap::from([(0, Vec3::new(1.0, 2.0, 3.0))]),
+            bodies: BTreeMap::new(),
+            poses: poses.iter().copied().collect(),
+            metric,
+            sigma_px: 1.0,
+            part_of: None,
+        }
+    }
+
+    #[test]
+    fn a_split_scene_takes_its_scale_from_the_motions_it_shares() {
+        // Camera 1 at frames 3, 4, 5 is posed in both scenes; the rest scene was
+        // reconstructed at 1/2.5 of metric scale (and in another frame).
+        let cam = |f: usize| {
+            Pose::from_rotvec(
+                Vec3::new(0.0, 0.3 * f as f64, 0.0),
+                Vec3::new(0.4 * f as f64, 0.1, -0.2 * f as f64),
+            )
+        };
+        let other_frame = Pose::from_rotvec(Vec3::new(0.2, -0.1, 0.4), Vec3::new(1.0, 2.0, 3.0));
+        let metric = scene(
+            &[((3, 1), cam(3)), ((4, 1), cam(4)), ((5, 1), cam(5))],
+            true,
+        );
+        let shrink = |p: Pose| {
+            let q = p * other_frame;
+            Pose::new(q.rot, q.trans / 2.5)
+        };
+        let mut rest = scene(
+            &[
+                ((3, 1), shrink(cam(3))),
+                ((4, 1), shrink(cam(4))),
+                ((5, 1), shrink(cam(5))),
+            ],
+            false,
+        );
+        rest.points.insert(0, Vec3::new(0.4, 0.8, 1.2));
+        assert!(scale_from_shared_motion(&mut rest, [&metric].into_iter()));
+        assert!((rest.points[&0] - Vec3::new(1.0, 2.0, 3.0)).norm() < 1e-12);
+        // Nothing shared: no scale, scene untouched.
+        let mut alone = scene(&[((7, 2), cam(7)), ((8, 2), cam(8))], false);
+        assert!(!scale_from_shared_motion(&mut alone, [&metric].into_iter()));
+        assert_eq!(alone.points[&0], Vec3::new(1.0, 2.0, 3.0));
+    }
 }

@@ -76,7 +76,11 @@ pub fn triangulate(views: &[(Pose, Vec2)]) -> Option<Vec3> {
         let r2 = r2 / r2.norm().max(1e-300);
         a += r1 * r1.transpose() + r2 * r2.transpose();
     }
-    let eig = a.symmetric_eigen();
+    let eig = crate::solver::eigen::symmetric_eigen(&nalgebra::DMatrix::from_column_slice(
+        4,
+        4,
+        a.as_slice(),
+    ));
     let k = eig
         .eigenvalues
         .iter()

@@ -324,7 +324,10 @@ pub fn calibrate_with(
         reasons.push(reason("scene_not_reconstructed", why.clone(), None));
     }
     for scene in &traj.scenes {
-        if !scene.poses.is_empty() && !scene.metric {
+        // The split-off rest of a measured scene takes its scale from the rig (solved
+        // in the initialisation with the rest); only a scene no distance was ever
+        // measured in lacks one.
+        if !scene.poses.is_empty() && !scene.metric && scene.part_of.is_none() {
             reasons.push(reason("scale_missing", "a scene of unknown geometry has no measured distance (scale[]): its scale comes from the rig motion only", None));
             break;
         }

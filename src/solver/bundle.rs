@@ -910,7 +910,7 @@ fn eliminate_block(
     if coupled * 8 >= s.nrows() {
         // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse).
         let sub = DMatrix::from_fn(ze, ze, |i, j| inv[(i, j)]);
-        let eig = ((&sub + sub.transpose()) * 0.5).symmetric_eigen();
+        let eig = super::eigen::symmetric_eigen(&sub);
         for r in 0..ze {
             let l = eig.eigenvalues[r];
             if l <= 0.0 {
@@ -1004,8 +1004,7 @@ pub fn symmetric_pseudo_inverse(m: &DMatrix<f64>, rel: f64) -> DMatrix<f64> {
     if n == 0 {
         return m.clone();
     }
-    let sym = (m + m.transpose()) * 0.5;
-    let eig = sym.symmetric_eigen();
+    let eig = super::eigen::symmetric_eigen(m);
     let lmax = eig.eigenvalues.amax();
     let mut out = DMatrix::zeros(n, n);
     for k in 0..n {
