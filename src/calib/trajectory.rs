@@ -152,6 +152,7 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
     let mut reference_poses: BTreeMap<usize, Pose> = BTreeMap::new();
     let mut queue: std::collections::VecDeque<(usize, Option<usize>)> =
         order.into_iter().map(|s| (s, None)).collect();
+    let mut splits: HashMap<usize, usize> = HashMap::new();
     while let Some((s, part_of)) = queue.pop_front() {
         let is_rest = part_of.is_some();
         match reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses) {
@@ -172,9 +173,19 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 // would carry it on share too few points with what is built. The rest
                 // becomes a scene of its own; the images that see both tie the two
                 // frames together, as after a U-turn.
-                if let Some(rest) = split_rest(session, &mut scene_of_point, s, &r, scenes.len()) {
-                    scenes.push(None);
-                    queue.push_back((rest, Some(part_of.unwrap_or(s))));
+                // Bounded: a split needs the scene to have reconstructed some points
+                // (else its rest is the whole scene again), and a chain splits at most
+                // MAX_SPLITS times.
+                let origin = part_of.unwrap_or(s);
+                let n_splits = splits.entry(origin).or_insert(0usize);
+                if !r.points.is_empty() && *n_splits < MAX_SPLITS {
+                    if let Some(rest) =
+                        split_rest(session, &mut scene_of_point, s, &r, scenes.len())
+                    {
+                        *n_splits += 1;
+                        scenes.push(None);
+                        queue.push_back((rest, Some(origin)));
+                    }
                 }
                 scenes[s] = Some(r);
             }
@@ -238,6 +249,9 @@ fn scale_from_shared_motion<'a>(
     }
     true
 }
+
+/// How many times one scene's chain may be split into a further scene.
+const MAX_SPLITS: usize = 3;
 
 /// Free points of scene `s` that its reconstruction `r` left out, relabelled as scene
 /// `next` if there are enough of them, seen by enough images, for a two-view start.
