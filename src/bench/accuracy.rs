@@ -26,6 +26,9 @@ pub struct AccuracyRow {
     pub crb_r_deg: f64,
     /// Mean NEES of the 6 extrinsic parameters (6 is ideal).
     pub nees: f64,
+    /// Directions the motion leaves undetermined (heights under planar motion); the
+    /// errors above are of the observable part only.
+    pub unobservable: usize,
 }
 
 /// Error `[dt; dφ]` of `est` against `truth` in the parametrisation of the covariance.
@@ -49,6 +52,61 @@ pub fn cramer_rao(
     truth: &Truth,
     sigma: f64,
 ) -> Option<HashMap<usize, DMatrix<f64>>> {
+    let (cams, info) = truth_information(session, truth, sigma)?;
+    let cov = info.try_inverse()? * (sigma * sigma);
+    Some(
+        cams.iter()
+            .enumerate()
+            .map(|(i, c)| (*c, cov.view((6 * i, 6 * i), (6, 6)).into_owned()))
+            .collect(),
+    )
+}
+
+/// The part of the extrinsics the data determine, from the information at the truth:
+/// the projector onto its range and the bound (pseudo-inverse × σ²) on that range.
+/// Under planar motion the heights are exactly unobservable at the truth, so their
+/// eigenvalues are zero to rounding; errors along them say nothing of an estimator
+/// (both the initialisation and the adjustment hold them at the prior).
+pub struct Observable {
+    pub cams: Vec<usize>,
+    pub projector: DMatrix<f64>,
+    pub crb: DMatrix<f64>,
+    /// Number of unobservable directions.
+    pub null_dim: usize,
+}
+
+pub fn observable(session: &Session, truth: &Truth, sigma: f64) -> Option<Observable> {
+    let (cams, info) = truth_information(session, truth, sigma)?;
+    let eig = crate::solver::eigen::symmetric_eigen(&info);
+    let max = eig.eigenvalues.max();
+    let n = info.nrows();
+    let mut projector = DMatrix::zeros(n, n);
+    let mut crb = DMatrix::zeros(n, n);
+    let mut null_dim = 0;
+    for (i, &l) in eig.eigenvalues.iter().enumerate() {
+        let v = eig.eigenvectors.column(i);
+        if l > 1e-9 * max {
+            projector += v * v.transpose();
+            crb += v * v.transpose() * (sigma * sigma / l);
+        } else {
+            null_dim += 1;
+        }
+    }
+    Some(Observable {
+        cams,
+        projector,
+        crb,
+        null_dim,
+    })
+}
+
+/// Information of the extrinsics at the truth for pixel noise `sigma`: the cameras in
+/// session order except the reference, and the joint matrix with 6×6 blocks `[dt, dφ]`.
+fn truth_information(
+    session: &Session,
+    truth: &Truth,
+    sigma: f64,
+) -> Option<(Vec<usize>, DMatrix<f64>)> {
     let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
     let world_from_ref0 = truth.world_from_rig[0];
     // Express the truth in the estimator's gauge: world = reference camera at frame 0.
@@ -96,14 +154,7 @@ pub fn cramer_rao(
         priors: vec![],
         pixel_sigma: sigma,
     };
-    let (cams, info) = problem.extrinsic_information(&Loss::Squared)?;
-    let cov = info.try_inverse()? * (sigma * sigma);
-    Some(
-        cams.iter()
-            .enumerate()
-            .map(|(i, c)| (*c, cov.view((6 * i, 6 * i), (6, 6)).into_owned()))
-            .collect(),
-    )
+    problem.extrinsic_information(&Loss::Squared)
 }
 
 /// Run `trials` noisy trials per noise level; errors pooled over the non-reference cameras.
@@ -129,22 +180,41 @@ pub fn accuracy(preset: &str, sigmas: &[f64], trials: usize, seed0: u64) -> Vec<
                 row.failed += 1;
                 continue;
             }
-            let crb = cramer_rao(&session, &truth, sigma);
-            for (c, cam) in session.cameras.iter().enumerate() {
-                if c == session.reference {
-                    continue;
+            let Some(obs) = observable(&session, &truth, sigma) else {
+                continue;
+            };
+            // Errors stacked like the information, then reduced to the observable part.
+            let stack = |pick: &dyn Fn(usize) -> SVector<f64, 6>| {
+                let mut v = nalgebra::DVector::zeros(6 * obs.cams.len());
+                for (i, &c) in obs.cams.iter().enumerate() {
+                    v.rows_mut(6 * i, 6).copy_from(&pick(c));
                 }
-                let t = truth.ref_from_cam[&cam.id];
-                let e = error6(&ExtrinsicValue::pose(&doc.extrinsics[c].value), &t);
-                let e0 = error6(&ExtrinsicValue::pose(&doc.initialisation[c]), &t);
-                it += e0.fixed_rows::<3>(0).norm_squared();
-                ir += e0.fixed_rows::<3>(3).norm_squared();
-                rt += e.fixed_rows::<3>(0).norm_squared();
-                rr += e.fixed_rows::<3>(3).norm_squared();
+                &obs.projector * v
+            };
+            let truth_of = |c: usize| truth.ref_from_cam[&session.cameras[c].id];
+            let e_ba = stack(&|c| {
+                error6(
+                    &ExtrinsicValue::pose(&doc.extrinsics[c].value),
+                    &truth_of(c),
+                )
+            });
+            let e_init =
+                stack(&|c| error6(&ExtrinsicValue::pose(&doc.initialisation[c]), &truth_of(c)));
+            row.unobservable = obs.null_dim;
+            for (i, &c) in obs.cams.iter().enumerate() {
+                let e = e_ba.rows(6 * i, 6);
+                let e0 = e_init.rows(6 * i, 6);
+                it += e0.rows(0, 3).norm_squared();
+                ir += e0.rows(3, 3).norm_squared();
+                rt += e.rows(0, 3).norm_squared();
+                rr += e.rows(3, 3).norm_squared();
                 n += 1;
-                if let Some(b) = crb.as_ref().and_then(|m| m.get(&c)) {
-                    ct += (0..3).map(|k| b[(k, k)]).sum::<f64>();
-                    cr += (3..6).map(|k| b[(k, k)]).sum::<f64>();
+                ct += (0..3).map(|k| obs.crb[(6 * i + k, 6 * i + k)]).sum::<f64>();
+                cr += (3..6).map(|k| obs.crb[(6 * i + k, 6 * i + k)]).sum::<f64>();
+                // NEES only where every direction is determined: elsewhere the reported
+                // covariance is singular along the held heights.
+                if obs.null_dim > 0 {
+                    continue;
                 }
                 if let Some(cov) = doc.extrinsics[c].covariance {
                     let m = DMatrix::from_fn(6, 6, |a, b| cov[a][b]);
@@ -205,6 +275,12 @@ pub fn print_table(preset: &str, rows: &[AccuracyRow]) {
             r.refined_t_mm / r.crb_t_mm,
             r.init_t_mm / r.refined_t_mm,
             r.nees
+        );
+    }
+    if let Some(r) = rows.iter().find(|r| r.unobservable > 0) {
+        println!(
+            "errors and bound of the observable part only: {} direction(s) the motion leaves undetermined are held at the prior (NEES not defined)",
+            r.unobservable
         );
     }
 }
