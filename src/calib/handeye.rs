@@ -16,7 +16,7 @@
 //! cannot determine (the height under planar motion) are set from `priors` or to 0 and
 //! reported.
 
-use super::motion::{classify, MotionClass, MotionReport, MIN_ROTATION};
+use super::motion::{classify, common_axis, MotionClass, MotionReport, MIN_ROTATION};
 use super::trajectory::Trajectories;
 use crate::geometry::{so3, Mat3, Pose, Vec3};
 use crate::session::Session;
@@ -174,21 +174,6 @@ fn sine_axis(r: &Mat3) -> Vec3 {
     Vec3::new(k[(2, 1)], k[(0, 2)], k[(1, 0)])
 }
 
-/// The unit axis shared by rotations: the smallest eigenvector of Σ (R − I)ᵀ(R − I),
-/// well conditioned at every angle, half-turns included. Its sign is arbitrary.
-fn common_axis<'a>(rots: impl Iterator<Item = &'a Mat3>) -> Option<Vec3> {
-    let mut m = Mat3::zeros();
-    for r in rots {
-        let d = r - Mat3::identity();
-        m += d.transpose() * d;
-    }
-    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&m);
-    if values.max() < MIN_ROTATION * MIN_ROTATION {
-        return None;
-    }
-    Some(vectors.column(values.imin()).into())
-}
-
 /// The smallest rotation taking unit vector `from` to unit vector `to`.
 fn align(from: &Vec3, to: &Vec3) -> Mat3 {
     let c = from.cross(to);
@@ -221,8 +206,10 @@ fn align(from: &Vec3, to: &Vec3) -> Mat3 {
 /// split off a long chain); only the direction of `(cos φ, sin φ)` is kept from each.
 fn planar_rotation(groups: &[Vec<(Pose, Pose)>]) -> Option<Mat3> {
     let all = || groups.iter().flatten();
-    let a = common_axis(all().map(|(a, _)| &a.rot))?;
-    let b = common_axis(all().map(|(_, b)| &b.rot))?;
+    let informative =
+        |(n, largest): (Vec3, f64)| (largest >= MIN_ROTATION * MIN_ROTATION).then_some(n);
+    let a = informative(common_axis(all().map(|(a, _)| &a.rot)))?;
+    let b = informative(common_axis(all().map(|(_, b)| &b.rot)))?;
     // A and B are conjugate, so each pair turns by the same signed angle about a and
     // about the corresponding b: every pair votes for the relative sign, weighted by how
     // much it turns. (The sign of a sum of turns is unreliable: a drive that swings
@@ -451,7 +438,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         .filter(|(_, sc)| sc.metric && sc.part_of.is_none())
         .filter_map(|(k, _)| *k)
         .collect();
-    let dim0 = 3 * (ncx + nfw + ns) + scale_col.iter().flatten().count();
+    let dim = 3 * (ncx + nfw + ns) + scale_col.iter().flatten().count();
     let permutation = {
         let mut cams_per_scene: BTreeMap<usize, BTreeSet<usize>> = BTreeMap::new();
         for &(f, s, c, _) in &edges {
@@ -488,8 +475,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         }
     });
     // Translations (and scene scales) by linear least squares, rotations held.
-    let solve = |rot: &[Mat3], rw: &[Option<Mat3>], rs: &[Option<Mat3>]| -> DVector<f64> {
-        let dim = dim0;
+    let x = {
         let mut ata = DMatrix::<f64>::zeros(dim, dim);
         let mut atb = DVector::<f64>::zeros(dim);
         for &(f, s, c, p) in &edges {
@@ -567,7 +553,6 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             None => crate::solver::bundle::symmetric_pseudo_inverse(&ata, 1e-12) * &atb,
         }
     };
-    let x = solve(&rot, &rw, &rs);
 
     let ref_from_cam: Vec<Pose> = (0..nc)
         .map(|c| match cam_col[c] {

@@ -50,22 +50,27 @@ pub struct MotionReport {
     pub axis_line_rms_m: f64,
 }
 
+/// The unit axis shared by rotations, and the largest eigenvalue (0 when none turns).
+/// It minimises Σ|R_k n − n|²: the smallest eigenvector of Σ (R_k − I)ᵀ(R_k − I).
+/// Unlike the axis of log(R_k), ill-conditioned near 180° (a U-turn, a loop), this is
+/// well conditioned at every angle. Its sign is arbitrary.
+pub fn common_axis<'a>(rots: impl Iterator<Item = &'a Mat3>) -> (Vec3, f64) {
+    let mut m = Mat3::zeros();
+    for r in rots {
+        let d = r - Mat3::identity();
+        m += d.transpose() * d;
+    }
+    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&m);
+    (vectors.column(values.imin()).into(), values.max())
+}
+
 /// Classify motions `ref^k_from_ref^k0` (in the reference camera's frame).
 pub fn classify(motions: &[Pose]) -> MotionReport {
     let ws: Vec<Vec3> = motions.iter().map(|m| so3::log(&m.rot)).collect();
     let informative = ws.iter().filter(|w| w.norm() > MIN_ROTATION).count();
     let max_rot = ws.iter().map(|w| w.norm()).fold(0.0, f64::max);
     let max_t = motions.iter().map(|m| m.trans.norm()).fold(0.0, f64::max);
-    // The common axis n minimises Σ|R_k n − n|²: the smallest eigenvector of
-    // Σ (R_k − I)ᵀ(R_k − I). Unlike the axis of log(R_k), which is ill-conditioned near
-    // 180° (a U-turn, a loop), this is well conditioned at every angle.
-    let mut m = Mat3::zeros();
-    for mo in motions {
-        let d = mo.rot - Mat3::identity();
-        m += d.transpose() * d;
-    }
-    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&m);
-    let n: Vec3 = vectors.column(values.imin()).into();
+    let (n, _) = common_axis(motions.iter().map(|m| &m.rot));
     let n = if n.z < 0.0 { -n } else { n };
     // Tilt of each motion: the angle by which it moves the axis, 0 for rotations about n.
     let out_of_axis = motions
