@@ -73,15 +73,23 @@ pub fn detect_line_targets(img: &Gray, lens: Lens) -> Vec<LineTargetDetection> {
             let Some(d) = rough.and_then(|rough| measure(img, lens, &rough)) else {
                 continue;
             };
-            // The same target found at another threshold refines to the same corners.
+            // The same target found at another threshold shares most of its corners (a
+            // noisy threshold can cut a corner off and the sides still fit loosely: seen
+            // at σ 10 grey, one corner 10 px off, edge RMS 0.42 px against 0.08 px): the
+            // better fitting one is kept.
             let same = |e: &LineTargetDetection| {
-                (0..LINES).all(|k| {
-                    (e.corners[k][0] - d.corners[k][0]).hypot(e.corners[k][1] - d.corners[k][1])
-                        < 2.0
-                })
+                (0..LINES)
+                    .filter(|&k| {
+                        (e.corners[k][0] - d.corners[k][0]).hypot(e.corners[k][1] - d.corners[k][1])
+                            < 2.0
+                    })
+                    .count()
+                    >= LINES / 2
             };
-            if !found.iter().any(same) {
-                found.push(d);
+            match found.iter_mut().find(|e| same(e)) {
+                Some(e) if d.edge_rms_px < e.edge_rms_px => *e = d,
+                Some(_) => {}
+                None => found.push(d),
             }
         }
     }

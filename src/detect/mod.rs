@@ -111,40 +111,42 @@ pub fn detect_tags(
     let lens = Lens(camera);
     let candidates = quads::detect(img, &opts.quads)?;
     let mut rejected = Vec::new();
-    // An id seen twice is ambiguous: neither copy is used.
-    let mut count: BTreeMap<u32, usize> = BTreeMap::new();
-    for c in &candidates {
-        *count.entry(c.id).or_default() += 1;
-    }
-    let mut refined: BTreeMap<u32, grid::Found> = BTreeMap::new();
-    for c in candidates {
-        if count[&c.id] > 1 {
-            rejected.push(Rejection {
-                id: c.id,
-                reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
-            });
-            continue;
-        }
-        match refine_candidate(img, &c, lens, opts.quads.max_hamming) {
-            Some(r) => {
-                refined.insert(
-                    c.id,
-                    grid::Found {
-                        refined: r,
-                        hamming: c.hamming,
-                        margin: c.margin,
-                        predicted: false,
-                    },
-                );
+    let mut refined =
+        refine_candidates(img, candidates, lens, opts.quads.max_hamming, &mut rejected);
+    let wanted = wanted(targets);
+    // A board whose tags the decimated quad search saw but none of which refined (seen on
+    // strongly distorted views: 2 boards in 40, every quad there ran along crossing
+    // squares) gets a second search at full resolution, for its ids only. Boards not in
+    // view at all cost nothing more.
+    let seedless: Vec<&GridLayout> = wanted
+        .iter()
+        .filter_map(|w| match w {
+            Wanted::Grid(_, layout)
+                if !layout.ids().any(|id| refined.contains_key(&id))
+                    && rejected.iter().any(|r| layout.ids().any(|id| id == r.id)) =>
+            {
+                Some(layout)
             }
-            None => rejected.push(Rejection {
-                id: c.id,
-                reason: format!(
-                    "tag {}: its edges could not be measured (cut by the image border, too small or blurred)",
-                    c.id
-                ),
-            }),
-        }
+            _ => None,
+        })
+        .collect();
+    if !seedless.is_empty() && opts.quads.decimate > 1.0 {
+        let full = quads::QuadOptions {
+            decimate: 1.0,
+            ..opts.quads.clone()
+        };
+        let again: Vec<quads::Candidate> = quads::detect(img, &full)?
+            .into_iter()
+            .filter(|c| seedless.iter().any(|l| l.ids().any(|id| id == c.id)))
+            .collect();
+        let mut second = Vec::new();
+        let found = refine_candidates(img, again, lens, opts.quads.max_hamming, &mut second);
+        // Ids refused in the first pass and found now are no longer refused.
+        rejected.retain(|r| !found.contains_key(&r.id));
+        // (A refusal repeated by the second pass is said once.)
+        second.retain(|r| !rejected.iter().any(|q| q.id == r.id));
+        rejected.extend(second);
+        refined.extend(found);
     }
     let mut tags = Vec::new();
     let mut points = Vec::new();
@@ -171,7 +173,6 @@ pub fn detect_tags(
             });
         }
     };
-    let wanted = wanted(targets);
     // Boards first: their ids are theirs.
     for w in &wanted {
         if let Wanted::Grid(name, layout) = w {
@@ -217,6 +218,52 @@ pub fn detect_tags(
         points,
         rejected,
     })
+}
+
+/// Refine every candidate whose id appears once in the image (an id seen twice is
+/// ambiguous: neither copy is used); refusals go to `rejected` with why.
+fn refine_candidates(
+    img: &Gray,
+    candidates: Vec<quads::Candidate>,
+    lens: Lens,
+    max_hamming: u32,
+    rejected: &mut Vec<Rejection>,
+) -> BTreeMap<u32, grid::Found> {
+    let mut count: BTreeMap<u32, usize> = BTreeMap::new();
+    for c in &candidates {
+        *count.entry(c.id).or_default() += 1;
+    }
+    let mut refined = BTreeMap::new();
+    for c in candidates {
+        if count[&c.id] > 1 {
+            rejected.push(Rejection {
+                id: c.id,
+                reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
+            });
+            continue;
+        }
+        match refine_candidate(img, &c, lens, max_hamming) {
+            Some(r) => {
+                refined.insert(
+                    c.id,
+                    grid::Found {
+                        refined: r,
+                        hamming: c.hamming,
+                        margin: c.margin,
+                        predicted: false,
+                    },
+                );
+            }
+            None => rejected.push(Rejection {
+                id: c.id,
+                reason: format!(
+                    "tag {}: its edges could not be measured (cut by the image border, too small or blurred)",
+                    c.id
+                ),
+            }),
+        }
+    }
+    refined
 }
 
 /// Refine a quad-detector candidate. In AprilGrids the quad sometimes runs one corner
