@@ -54,13 +54,20 @@ pub fn ring_accuracy_images(noise_grey: &[f64], trials: usize, seed: u64) -> Vec
             crate::synth::ring::image_session(&rig, &aux, &scene, sigma, seed + k as u64);
         let session = crate::session::from_manifest(manifest).ok()?;
         let source = crate::pipeline::detection::MemorySource(files.into_iter().collect());
-        let doc = crate::pipeline::run(
+        let doc = match crate::pipeline::run(
             &session,
             &source,
             &CalibOptions::default(),
             &crate::pipeline::Silent,
-        )
-        .ok()?;
+        ) {
+            Ok(doc) => doc,
+            Err(_) => return None,
+        };
+        if doc.status == Status::Failed {
+            // Said, not only left out of the table (its trial count shows it too).
+            let why = serde_json::to_string(&doc.reasons).unwrap_or_default();
+            eprintln!("σ {sigma} grey, seed {}: failed: {why}", seed + k as u64);
+        }
         Some((doc, truth))
     })
 }

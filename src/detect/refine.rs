@@ -107,6 +107,11 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64,
 /// 0.06 px for σ 0.5 (1-D study of the fit on exact pixel samples).
 const MIN_FIT_WINDOW: f64 = 2.5;
 
+/// Half-width (px) of the band of pixels along a profile that its edge fit reads. With
+/// one profile per pixel of side, neighbouring edge points share pixels (and noise):
+/// only points `2·FIT_BAND + 1` profiles apart are independent.
+pub const FIT_BAND: f64 = 1.0;
+
 /// The edge on a profile from the pixels around it, not from interpolated samples.
 ///
 /// Why: the mid-level crossing of a bilinearly interpolated blurred step is off by up to
@@ -135,7 +140,7 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
         for x in x0 as usize..=x1 as usize {
             let c = Vec2::new(x as f64, y as f64) - p;
             let s = n.dot(&c);
-            if t.dot(&c).abs() <= 1.0 && (s - e0).abs() <= half_window {
+            if t.dot(&c).abs() <= FIT_BAND && (s - e0).abs() <= half_window {
                 samples.push((s, img.data[y * img.width + x] as f64));
             }
         }
