@@ -159,6 +159,7 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
             .sum()
     };
     let mut current = cost(&x);
+    let mut converged = false;
     for _ in 0..20 {
         let mut jtj = nalgebra::Matrix4::<f64>::zeros();
         let mut jtr = nalgebra::Vector4::<f64>::zeros();
@@ -186,20 +187,17 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
             if next[3] > 0.2 && next[3] < 4.0 {
                 let c = cost(&next);
                 if c < current {
-                    let done = step[2].abs() < 1e-5;
+                    converged = step[2].abs() < 1e-5;
                     x = next;
                     current = c;
                     lambda = (lambda * 0.3).max(1e-9);
                     improved = true;
-                    if done {
-                        return ((x[2] - e0).abs() < 1.0).then_some(x[2]);
-                    }
                     break;
                 }
             }
             lambda *= 10.0;
         }
-        if !improved {
+        if !improved || converged {
             break;
         }
     }

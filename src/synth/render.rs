@@ -137,30 +137,29 @@ pub fn render(
     let response = PixelResponse::new(opts.blur_sigma);
     let reach = response.reach();
     let span = 2 * reach + 1;
-    let mass = |lo: f64, hi: f64| response.mass(lo, hi);
     let per_px: Vec<f64> = (0..span)
         .map(|i| {
             let d = i as f64 - reach as f64;
-            mass(d - 0.5, d + 0.5)
+            response.mass(d - 0.5, d + 0.5)
         })
         .collect();
     let per_cell: Vec<f64> = (0..span * m)
         .map(|k| {
             let lo = (k / m) as f64 - reach as f64 - 0.5 + (k % m) as f64 / m as f64;
-            mass(lo, lo + 1.0 / m as f64)
+            response.mass(lo, lo + 1.0 / m as f64)
         })
         .collect();
     let total = per_px.iter().sum::<f64>().powi(2);
+    // Pixels within `reach` of an edge pixel (a separable dilation, once).
+    let rows_near: Vec<bool> = per_pixel(w, h, |u, v| {
+        (u.saturating_sub(reach)..=(u + reach).min(w - 1)).any(|i| flat[v * w + i].is_none())
+    });
+    let edge_near: Vec<bool> = per_pixel(w, h, |u, v| {
+        (v.saturating_sub(reach)..=(v + reach).min(h - 1)).any(|j| rows_near[j * w + u])
+    });
     let value: Vec<f64> = per_pixel(w, h, |u, v| {
         let (i0, j0) = (u as isize - reach as isize, v as isize - reach as isize);
-        let inside = |i: isize, j: isize| i >= 0 && j >= 0 && (i as usize) < w && (j as usize) < h;
-        let edge_near = (0..span as isize).any(|dj| {
-            (0..span as isize).any(|di| {
-                let (i, j) = (i0 + di, j0 + dj);
-                inside(i, j) && flat[j as usize * w + i as usize].is_none()
-            })
-        });
-        if let (Some(g), false) = (flat[v * w + u], edge_near) {
+        if let (Some(g), false) = (flat[v * w + u], edge_near[v * w + u]) {
             return g;
         }
         let mut acc = 0.0;
