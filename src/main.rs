@@ -204,6 +204,18 @@ enum BenchCommand {
         /// Render the 16 images of every trial and go through the line-target detector.
         #[arg(long)]
         images: bool,
+        /// Placement study (sampled points only): ground distance camera → target (m).
+        #[arg(long)]
+        target_distance: Option<f64>,
+        /// Placement study: auxiliary camera distance to the pair's midpoint (m).
+        #[arg(long)]
+        aux_distance: Option<f64>,
+        /// Placement study: auxiliary camera pitch below the horizon (deg).
+        #[arg(long)]
+        aux_pitch: Option<f64>,
+        /// Placement study: put the noise on `both`, only the `rig` or only the `aux` images.
+        #[arg(long, default_value = "both")]
+        noise_on: String,
     },
     /// Detector on rendered tags and AprilGrids: detection rate, wrong ids, corner RMS
     /// error vs truth, time per image.
@@ -220,6 +232,12 @@ enum BenchCommand {
         /// Also write each view (PNG) and its truth (JSON) here, for benches/peers.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Head-on tag sizes (px) of the single-tag cells, `MIN,MAX` (default 24,200).
+        #[arg(long, value_delimiter = ',')]
+        tag_sizes: Option<Vec<f64>>,
+        /// Only the single-tag cells (`tags`) or only the AprilGrid cells (`grids`).
+        #[arg(long)]
+        only: Option<String>,
     },
     /// Wall time, iterations and final cost of the rig bundle adjustment.
     Speed {
@@ -414,14 +432,54 @@ fn run() -> Result<i32> {
                     noise,
                     seed,
                     images,
+                    target_distance,
+                    aux_distance,
+                    aux_pitch,
+                    noise_on,
                 },
         } => {
+            use rigcal::bench::ring::NoiseOn;
             if noise.iter().any(|s| !(s.is_finite() && *s > 0.0)) {
                 return Err(anyhow!("--noise: positive σ values, got {noise:?}"));
             }
+            let on = match noise_on.as_str() {
+                "both" => NoiseOn::Both,
+                "rig" => NoiseOn::Rig,
+                "aux" => NoiseOn::Aux,
+                other => {
+                    return Err(anyhow!("--noise-on: both, rig or aux, got {other:?}"));
+                }
+            };
+            let default = rigcal::synth::ring::RingLayout::default();
+            let layout = rigcal::synth::ring::RingLayout {
+                target_distance: target_distance.unwrap_or(default.target_distance),
+                aux_distance: aux_distance.unwrap_or(default.aux_distance),
+                aux_pitch_deg: aux_pitch.unwrap_or(default.aux_pitch_deg),
+            };
+            // (`contains` is false for NaN.)
+            let in_range = (0.05..=20.0).contains(&layout.target_distance)
+                && (0.2..=20.0).contains(&layout.aux_distance)
+                && (5.0..=85.0).contains(&layout.aux_pitch_deg);
+            if !in_range {
+                return Err(anyhow!(
+                    "--target-distance in 0.05..=20 m, --aux-distance in 0.2..=20 m, --aux-pitch in 5..=85 deg"
+                ));
+            }
+            let study = layout != default || on != NoiseOn::Both;
             let rows = if images {
+                if study {
+                    return Err(anyhow!(
+                        "--images renders the default placement; the placement flags are for sampled points"
+                    ));
+                }
                 println!("From rendered images through the line-target detector; σ is image noise in grey levels (of 255).");
                 rigcal::bench::ring::ring_accuracy_images(&noise, trials, seed)
+            } else if study {
+                println!(
+                    "Placement: target {:.2} m ahead, auxiliary camera {:.2} m from the pair at {:.0}° pitch; noise on {noise_on}.",
+                    layout.target_distance, layout.aux_distance, layout.aux_pitch_deg
+                );
+                rigcal::bench::ring::ring_accuracy_layout(&noise, trials, seed, &layout, on)
             } else {
                 rigcal::bench::ring::ring_accuracy(&noise, trials, seed)
             };
@@ -436,6 +494,8 @@ fn run() -> Result<i32> {
                     height,
                     seed,
                     out,
+                    tag_sizes,
+                    only,
                 },
         } => {
             if views == 0 || !(64..=8192).contains(&width) || !(64..=8192).contains(&height) {
@@ -443,13 +503,39 @@ fn run() -> Result<i32> {
                     "--views ≥ 1, --width and --height in 64..=8192 pixels"
                 ));
             }
-            let cells = rigcal::bench::detect::study(views, width, height);
+            let mut cells = rigcal::bench::detect::study(views, width, height);
+            if let Some(sizes) = tag_sizes {
+                let [lo, hi] = sizes[..] else {
+                    return Err(anyhow!("--tag-sizes: MIN,MAX in pixels, got {sizes:?}"));
+                };
+                if !(8.0..=2000.0).contains(&lo) || !(lo..=2000.0).contains(&hi) {
+                    return Err(anyhow!(
+                        "--tag-sizes: 8 ≤ MIN ≤ MAX ≤ 2000 px, got {lo},{hi}"
+                    ));
+                }
+                for c in cells.iter_mut().filter(|c| !c.grid) {
+                    c.sizes = (lo, hi);
+                }
+            }
+            // Cells left out keep their place (and so every other cell its seed), empty.
+            let grids = match only.as_deref() {
+                None => None,
+                Some("tags") => Some(false),
+                Some("grids") => Some(true),
+                Some(other) => return Err(anyhow!("--only: tags or grids, got {other:?}")),
+            };
+            for c in cells.iter_mut() {
+                if grids.is_some_and(|g| g != c.grid) {
+                    c.n = 0;
+                }
+            }
             if let Some(dir) = out {
                 rigcal::bench::detect::write_views(&cells, seed, &dir)?;
             }
             let rows: Vec<_> = cells
                 .iter()
                 .enumerate()
+                .filter(|(_, c)| c.n > 0)
                 .map(|(i, c)| rigcal::bench::detect::run_cell(c, seed + 1000 * i as u64))
                 .collect();
             rigcal::bench::detect::print_table(&rows);
@@ -545,6 +631,9 @@ fn detect_images(
     let lines_only = targets
         .iter()
         .all(|t| matches!(t, TargetSpec::LineTarget { .. }));
+    // The detector's decoder table is built once per thread (as a worker keeps it), not
+    // inside the first image's `elapsed_ms`.
+    rigcal::detect::quads::warm_up(&DetectOptions::default().quads).map_err(|e| anyhow!(e))?;
     let mut out = Vec::new();
     let mut failures = 0;
     for path in images {

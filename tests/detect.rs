@@ -25,7 +25,7 @@ fn cell(grid: bool, lens: Lens, n: usize) -> Cell {
 
 /// Single tags, 40-200 px, up to 60°, σ = 2 grey levels: every tag, right id, corners
 /// within the issue's 0.05 px RMS — with and without lens distortion. (Tags of 24-40 px
-/// are all found but their corners are at ~0.1 px RMS: see the next test.)
+/// are found too but their corners are at ~0.1 px RMS: see the next test.)
 #[test]
 fn single_tags_are_found_with_subpixel_corners() {
     for lens in [Lens::Pinhole, Lens::Radtan, Lens::Equidistant] {
@@ -37,8 +37,10 @@ fn single_tags_are_found_with_subpixel_corners() {
 }
 
 /// Small tags (24-40 px across head-on, up to 60°, so down to ~12 px foreshortened):
-/// never a wrong id, at most one in eight missed, corners within 0.2 px RMS. The issue
-/// asks ≥ 99.5 % and 0.05 px here; not met yet — issue 3 stays open on this.
+/// never a wrong id, at most one in eight missed, corners within 0.2 px RMS. Measured
+/// over 120 views (`rigcal bench detect --views 40 --only tags --tag-sizes 24,40
+/// --width 800 --height 600 --seed 5000`): 119 found, corners 0.08-0.10 px RMS — a
+/// border cell of ~1.5 px under σ 0.8 blur lets the bits next to it pull the edge.
 #[test]
 fn small_tags_are_found() {
     for lens in [Lens::Pinhole, Lens::Radtan] {
@@ -101,15 +103,27 @@ fn quad_detector_corners_follow_the_pixel_centre_convention() {
     assert!(mean.norm() < 0.1, "mean corner offset {mean:?}");
 }
 
-/// No tag in 100 images of noise, gradients, checkerboards and text-like blocks.
+/// No tag in 100 images of noise, gradients, checkerboards and text-like blocks — also
+/// with an AprilGrid in the session, whose absence triggers the second, bright-grown
+/// full-resolution search.
 #[test]
 fn no_detections_without_tags() {
     use rand::{Rng, SeedableRng};
-    let targets = vec![TargetSpec::Apriltags {
-        id: "tags".into(),
-        tag_size: 0.1,
-        ids: None,
-    }];
+    let targets = vec![
+        TargetSpec::Apriltags {
+            id: "tags".into(),
+            tag_size: 0.1,
+            ids: None,
+        },
+        TargetSpec::Aprilgrid {
+            id: "board".into(),
+            rows: 6,
+            cols: 6,
+            tag_size: 0.1,
+            tag_spacing: 0.3,
+            first_id: 0,
+        },
+    ];
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
     for i in 0..100u32 {
         let (w, h) = (480u32, 360u32);
@@ -144,6 +158,58 @@ fn no_detections_without_tags() {
         )
         .unwrap();
         assert!(d.tags.is_empty(), "image {i} (kind {kind}): {:?}", d.tags);
+    }
+}
+
+/// The quad detector's segmentation contrast follows the image noise (7σ, 5-40 grey): a
+/// tag of 40 grey levels' contrast is still found at σ 2, and tags at σ 8 (contrast
+/// 56 needed) are still found at full contrast; without the adaptive floor σ 2 noise
+/// segments the whole background.
+#[test]
+fn segmentation_contrast_follows_the_noise() {
+    let opts = DetectOptions::default();
+    for (black, white, noise) in [(100.0, 140.0, 2.0), (25.0, 230.0, 8.0), (25.0, 230.0, 0.0)] {
+        for i in 0..4u64 {
+            let s = scene(&SceneParams {
+                grid: false,
+                tag_px: 60.0 + 20.0 * i as f64,
+                obliquity_deg: 30.0,
+                lens: Lens::Pinhole,
+                width: 640,
+                height: 480,
+                render: RenderOptions {
+                    noise_sigma: noise,
+                    black,
+                    white,
+                    background: 0.5 * (black + white),
+                    ..Default::default()
+                },
+                seed: 300 + i,
+            });
+            let gray = Gray::from_luma8(&s.image);
+            let floor = opts.quads.contrast_for(&gray) as f64;
+            assert!(
+                (floor - (7.0 * noise).clamp(5.0, 40.0)).abs() <= 1.5,
+                "σ {noise}: contrast floor {floor}"
+            );
+            let d = detect_tags(&gray, &s.targets, Some(&s.camera), &opts).unwrap();
+            assert_eq!(
+                d.tags.len(),
+                1,
+                "contrast {} σ {noise} view {i}",
+                white - black
+            );
+            let truth = &s.truth[&d.tags[0].id];
+            let worst = (0..4)
+                .map(|k| (rigcal::detect::corner(&d.tags[0], k) - truth[k]).norm())
+                .fold(0.0, f64::max);
+            // Corner noise grows as σ / contrast: 0.05 at 2/40, 0.04 at 8/205.
+            assert!(
+                worst < 0.25,
+                "contrast {} σ {noise} view {i}: {worst} px",
+                white - black
+            );
+        }
     }
 }
 

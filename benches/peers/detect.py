@@ -47,6 +47,8 @@ def main():
     ap.add_argument("--height", type=int, default=1200)
     ap.add_argument("--rigcal", default="target/release/rigcal")
     ap.add_argument("--dir", default=None, help="reuse/keep rendered views here")
+    ap.add_argument("--only", default=None,
+                    help="comma-separated detectors to run (default: all four)")
     a = ap.parse_args()
     cv2.setNumThreads(1)
     d = a.dir or tempfile.mkdtemp(prefix="rigcal-detect-")
@@ -61,16 +63,23 @@ def main():
     aruco = cv2.aruco.ArucoDetector(
         cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
 
-    def run_rigcal(entry, path, with_camera):
+    def run_rigcal_batch(entries, with_camera):
+        """One `rigcal detect` over images that share target and camera; `elapsed_ms`
+        times detection only (image decoded, decoder table built beforehand, as a
+        worker keeps it)."""
+        e0 = entries[0]
         tf = os.path.join(d, "target.json")
-        json.dump(entry["targets"][0], open(tf, "w"))
-        cmd = [a.rigcal, "detect", path, "--target", tf]
+        json.dump(e0["targets"][0], open(tf, "w"))
+        cmd = [a.rigcal, "detect"] + [os.path.join(d, e["image"]) for e in entries]
+        cmd += ["--target", tf]
         if with_camera:
             cf = os.path.join(d, "camera.json")
-            json.dump(entry["camera"], open(cf, "w"))
+            json.dump(e0["camera"], open(cf, "w"))
             cmd += ["--camera", cf]
         out = json.loads(subprocess.run(cmd, capture_output=True, check=False).stdout)
-        return [(t["id"], t["corners"]) for t in out.get("tags", [])], out.get("elapsed_ms", 0.0)
+        out = out if isinstance(out, list) else [out]
+        return [([(t["id"], t["corners"]) for t in o.get("tags", [])], o.get("elapsed_ms", 0.0))
+                for o in out]
 
     def run_pupil(img):
         t = time.perf_counter()
@@ -86,18 +95,32 @@ def main():
             return [], ms
         return [(int(i), c.reshape(4, 2).tolist()) for i, c in zip(ids.flatten(), corners)], ms
 
-    names = ["rigcal", "rigcal (no camera)", "pupil-apriltags", "cv2.aruco subpix"]
+    names = [n for n in ["rigcal", "rigcal (no camera)", "pupil-apriltags", "cv2.aruco subpix"]
+             if a.only is None or n in a.only.split(",")]
     stats = {}
+    # One rigcal process per (target, camera): grids get a new id range per view.
+    by_cell = {}
+    for entry in truth:
+        key = json.dumps([entry["targets"][0], entry["camera"]], sort_keys=True)
+        by_cell.setdefault(key, []).append(entry)
+    rigcal_out = {}
+    for cell, entries in by_cell.items():
+        for name, cam in [("rigcal", True), ("rigcal (no camera)", False)]:
+            if name in names:
+                for entry, r in zip(entries, run_rigcal_batch(entries, cam)):
+                    rigcal_out[(entry["image"], name)] = r
     for entry in truth:
         path = os.path.join(d, entry["image"])
         img = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
         truths = {t["id"]: t["corners"] for t in entry["tags"]}
-        results = {
-            "rigcal": run_rigcal(entry, path, True),
-            "rigcal (no camera)": run_rigcal(entry, path, False),
-            "pupil-apriltags": run_pupil(img),
-            "cv2.aruco subpix": run_aruco(img),
-        }
+        results = {}
+        for name in names:
+            if name.startswith("rigcal"):
+                results[name] = rigcal_out[(entry["image"], name)]
+            elif name == "pupil-apriltags":
+                results[name] = run_pupil(img)
+            else:
+                results[name] = run_aruco(img)
         label = ("grid " if entry["grid"] else "tag ") + entry["lens"]
         for name, (dets, ms) in results.items():
             s = stats.setdefault((label, name), {"visible": 0, "found": 0, "wrong": 0,

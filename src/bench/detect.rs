@@ -19,6 +19,9 @@ pub struct DetectRow {
     pub from_layout: usize,
     pub corner_rms_px: f64,
     pub corner_max_px: f64,
+    /// Corner RMS (px) by head-on tag size: under 40 px, 40-80 px, 80 px and over
+    /// (`NaN` where the cell has no such views).
+    pub corner_rms_by_size_px: [f64; 3],
     /// The quad detector's corners (after the ½-px convention fix) on the same tags.
     pub quad_rms_px: f64,
     pub median_ms: f64,
@@ -64,10 +67,13 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
         ..Default::default()
     };
     let (mut sq, mut n, mut qsq, mut qn) = (0.0, 0usize, 0.0, 0usize);
+    let mut by_size = [(0.0, 0usize); 3];
     let mut times = Vec::new();
     let mut quad_times = Vec::new();
     for i in 0..cell.n {
-        let s = scene(&cell_params(cell, i, seed));
+        let params = cell_params(cell, i, seed);
+        let band = SIZE_BANDS.iter().filter(|&&b| params.tag_px >= b).count();
+        let s = scene(&params);
         let gray = Gray::from_luma8(&s.image);
         let start = Instant::now();
         let out = detect::detect_tags(
@@ -89,6 +95,8 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
                         let e = (corner(tag, k) - t).norm();
                         sq += e * e;
                         n += 1;
+                        by_size[band].0 += e * e;
+                        by_size[band].1 += 1;
                         row.corner_max_px = row.corner_max_px.max(e);
                     }
                 }
@@ -113,11 +121,15 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
         }
     }
     row.corner_rms_px = (sq / n.max(1) as f64).sqrt();
+    row.corner_rms_by_size_px = by_size.map(|(sq, n)| (sq / n as f64).sqrt());
     row.quad_rms_px = (qsq / qn.max(1) as f64).sqrt();
     row.median_ms = median(&mut times);
     row.quad_median_ms = median(&mut quad_times);
     row
 }
+
+/// Upper ends (head-on px) of the first two size bands of [`DetectRow::corner_rms_by_size_px`].
+const SIZE_BANDS: [f64; 2] = [40.0, 80.0];
 
 /// View `i` of a cell: sizes spread geometrically, obliquities evenly (shuffled).
 pub fn cell_params(cell: &Cell, i: usize, seed: u64) -> SceneParams {
@@ -171,7 +183,7 @@ pub fn study(n: usize, width: u32, height: u32) -> Vec<Cell> {
 
 pub fn print_table(rows: &[DetectRow]) {
     println!(
-        "{:<34} {:>6} {:>7} {:>7} {:>8} {:>6} {:>7} {:>10} {:>9} {:>9} {:>8} {:>8}",
+        "{:<34} {:>6} {:>7} {:>7} {:>8} {:>6} {:>7} {:>10} {:>9} {:>9} {:>8} {:>8} | {:>7} {:>7} {:>7}",
         "cell",
         "images",
         "visible",
@@ -183,11 +195,14 @@ pub fn print_table(rows: &[DetectRow]) {
         "max px",
         "quad rms",
         "med ms",
-        "quad ms"
+        "quad ms",
+        "<40px",
+        "40-80",
+        "≥80"
     );
     for r in rows {
         println!(
-            "{:<34} {:>6} {:>7} {:>7} {:>8.2} {:>6} {:>7} {:>10.4} {:>9.3} {:>9.3} {:>8.1} {:>8.1}",
+            "{:<34} {:>6} {:>7} {:>7} {:>8.2} {:>6} {:>7} {:>10.4} {:>9.3} {:>9.3} {:>8.1} {:>8.1} | {:>7.4} {:>7.4} {:>7.4}",
             r.label,
             r.images,
             r.visible,
@@ -199,7 +214,10 @@ pub fn print_table(rows: &[DetectRow]) {
             r.corner_max_px,
             r.quad_rms_px,
             r.median_ms,
-            r.quad_median_ms
+            r.quad_median_ms,
+            r.corner_rms_by_size_px[0],
+            r.corner_rms_by_size_px[1],
+            r.corner_rms_by_size_px[2]
         );
     }
 }

@@ -57,7 +57,7 @@ const MIN_SIDE_PX: f64 = 8.0;
 /// Sides of an L: levels read and edges searched within a quarter of its narrowest arm.
 const L_SIDES: SideSampling = SideSampling {
     corner_clearance: 0.06,
-    room: |_, shortest| 0.25 * shortest,
+    room: |side| 0.25 * side.shortest,
     corner_slack: 0.1,
 };
 

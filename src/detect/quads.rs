@@ -28,20 +28,53 @@ pub struct QuadOptions {
     /// Bit errors the decoder may correct (tag36h11 has distance 11; 2 keeps false
     /// positives negligible).
     pub max_hamming: u32,
+    /// Smallest black/white difference (grey levels) the segmentation treats as an edge;
+    /// `None`: [`NOISE_CONTRAST`] × the image's noise σ, within
+    /// [`MIN_CONTRAST_RANGE`]. The C library's fixed 5 lets σ 2 grey noise segment flat
+    /// background into thousands of components.
+    pub min_contrast: Option<u8>,
+    /// Search a copy of the image whose bright areas are grown by one pixel (3×3
+    /// maximum): it cuts the corner-to-corner contact between an AprilGrid's tags and its
+    /// crossing squares, which otherwise joins every tag's border to its neighbours' and
+    /// leaves no quad to find. It also thins black bits, so it is a second pass for
+    /// boards, never the first.
+    pub grow_bright: bool,
 }
+
+/// Segmentation contrast per unit of noise σ: the grey range over a 3×3-tile window of
+/// the decimated image (~150 samples) of pure noise reaches ~6σ.
+pub const NOISE_CONTRAST: f64 = 7.0;
+/// Bounds of the segmentation contrast: the C library's default, and a ceiling that
+/// keeps tags of modest contrast (40 grey levels) findable in very noisy images.
+pub const MIN_CONTRAST_RANGE: (u8, u8) = (5, 40);
 
 impl Default for QuadOptions {
     fn default() -> Self {
         Self {
             decimate: 2.0,
             max_hamming: 2,
+            min_contrast: None,
+            grow_bright: false,
         }
+    }
+}
+
+impl QuadOptions {
+    /// The segmentation contrast used on `img`.
+    pub fn contrast_for(&self, img: &Gray) -> u8 {
+        self.min_contrast.unwrap_or_else(|| {
+            let (lo, hi) = MIN_CONTRAST_RANGE;
+            (NOISE_CONTRAST * img.noise_sigma())
+                .ceil()
+                .clamp(lo as f64, hi as f64) as u8
+        })
     }
 }
 
 /// Run the quad detector for tag36h11 on `img` (single-threaded: callers parallelise
 /// over images).
 pub fn detect(img: &Gray, opts: &QuadOptions) -> Result<Vec<Candidate>, String> {
+    let contrast = opts.contrast_for(img);
     DETECTOR.with(|cell| {
         let mut cell = cell.borrow_mut();
         if cell.as_ref().is_none_or(|(h, _)| *h != opts.max_hamming) {
@@ -51,11 +84,36 @@ pub fn detect(img: &Gray, opts: &QuadOptions) -> Result<Vec<Candidate>, String> 
                 .map_err(|e| format!("AprilTag detector: {e}"))?;
             *cell = Some((opts.max_hamming, det));
         }
-        match cell.as_mut() {
-            Some((_, det)) => detect_with(det, img, opts),
-            None => Err("AprilTag detector unavailable".into()),
-        }
+        let (h, det) = cell.take().ok_or("AprilTag detector unavailable")?;
+        let mut det = with_min_contrast(det, contrast);
+        let out = detect_with(&mut det, img, opts);
+        *cell = Some((h, det));
+        out
     })
+}
+
+/// Build this thread's detector now (the decoder's table takes tens of milliseconds), so
+/// that timing a first image measures detection only.
+pub fn warm_up(opts: &QuadOptions) -> Result<(), String> {
+    let tiny = Gray {
+        width: 8,
+        height: 8,
+        data: vec![0.0; 64],
+    };
+    detect(&tiny, opts).map(|_| ())
+}
+
+/// Set the segmentation's `min_white_black_diff`. The crate's `set_thresholds` writes
+/// every quad parameter and stores the opposite-angle limit in radians where the C code
+/// reads its cosine, so the one field is set through the C struct instead.
+fn with_min_contrast(det: apriltag::Detector, contrast: u8) -> apriltag::Detector {
+    let raw = det.into_raw();
+    // SAFETY: `raw` is the live detector just released by `into_raw`, owned here alone;
+    // `from_raw` takes it back, so it is freed exactly once.
+    unsafe {
+        (*raw.as_ptr()).qtp.min_white_black_diff = contrast as std::os::raw::c_int;
+        apriltag::Detector::from_raw(raw.as_ptr())
+    }
 }
 
 thread_local! {
@@ -78,7 +136,10 @@ fn detect_with(
     let mut buf = apriltag::Image::zeros_with_stride(w, h, w.div_ceil(96) * 96)
         .map_err(|e| format!("AprilTag image: {e}"))?;
     let stride = buf.stride();
-    let px = img.to_u8();
+    let mut px = img.to_u8();
+    if opts.grow_bright {
+        px = grow_bright(&px, w, h);
+    }
     let dst = buf.as_slice_mut();
     for y in 0..h {
         dst[y * stride..y * stride + w].copy_from_slice(&px[y * w..(y + 1) * w]);
@@ -97,4 +158,52 @@ fn detect_with(
             }
         })
         .collect())
+}
+
+/// 3×3 maximum filter (separable), borders clamped.
+fn grow_bright(px: &[u8], w: usize, h: usize) -> Vec<u8> {
+    let mut rows = vec![0u8; px.len()];
+    for y in 0..h {
+        let r = &px[y * w..(y + 1) * w];
+        for x in 0..w {
+            let lo = x.saturating_sub(1);
+            let hi = (x + 1).min(w - 1);
+            rows[y * w + x] = r[lo].max(r[x]).max(r[hi]);
+        }
+    }
+    let mut out = vec![0u8; px.len()];
+    for y in 0..h {
+        let (up, down) = (y.saturating_sub(1), (y + 1).min(h - 1));
+        for x in 0..w {
+            out[y * w + x] = rows[up * w + x]
+                .max(rows[y * w + x])
+                .max(rows[down * w + x]);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn growing_bright_cuts_a_corner_contact() {
+        // Two black squares touching at one corner, on white.
+        let (w, h) = (12, 12);
+        let mut px = vec![255u8; w * h];
+        for y in 2..6 {
+            for x in 2..6 {
+                px[y * w + x] = 0;
+                px[(y + 4) * w + x + 4] = 0;
+            }
+        }
+        let g = grow_bright(&px, w, h);
+        // The contact pixels (5,5) and (6,6) turn white; each square's core stays black.
+        assert_eq!(g[5 * w + 5], 255);
+        assert_eq!(g[6 * w + 6], 255);
+        assert_eq!(g[3 * w + 3], 0);
+        assert_eq!(g[8 * w + 8], 0);
+        assert_eq!(g[4 * w + 4], 0);
+    }
 }

@@ -56,18 +56,23 @@ pub struct Refined {
 }
 
 /// Where along the profile `s ↦ I(p + s·n)` (dark at `s < 0`, bright at `s > 0`) the
-/// edge crosses, searched within `±reach` of 0, with symmetric levels at `±d`.
-fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64, f64)> {
+/// edge crosses, searched within `±reach` of 0, with symmetric levels at `±d`; to within
+/// `tol` px (the crossing is the measurement itself only where the pixel-model fit
+/// cannot run; elsewhere it is a start and a coarse `tol` saves most of the samples).
+fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Option<(f64, f64)> {
     let at = |s: f64| img.sample(p + n * s);
-    // Coarse: the steepest dark→bright step.
+    // Coarse: the steepest dark→bright step, from one sampling of the profile every ¼ px
+    // (the step at s is I(s + ½) − I(s − ½), two samples apart).
     let step = 0.25;
     let k = (reach / step).ceil() as i32;
+    let levels: Vec<f64> = (-k - 2..=k + 2)
+        .map(|i| at(i as f64 * step))
+        .collect::<Option<_>>()?;
     let mut best = (f64::NEG_INFINITY, 0.0);
-    for i in -k..=k {
-        let s = i as f64 * step;
-        let g = at(s + 0.5)? - at(s - 0.5)?;
+    for i in 0..=(2 * k) as usize {
+        let g = levels[i + 4] - levels[i];
         if g > best.0 {
-            best = (g, s);
+            best = (g, (i as i32 - k) as f64 * step);
         }
     }
     if best.0 <= 0.0 {
@@ -84,7 +89,7 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64,
         let mid = 0.5 * (dark + bright);
         // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge).
         let (mut lo, mut hi) = (e - d, e + d);
-        for _ in 0..14 {
+        while hi - lo > tol {
             let m = 0.5 * (lo + hi);
             if at(m)? < mid {
                 lo = m;
@@ -95,12 +100,17 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<(f64,
         let next = 0.5 * (lo + hi);
         let moved = (next - e).abs();
         e = next;
-        if e.abs() > reach + d || moved < 1e-4 {
+        if e.abs() > reach + d || moved < tol {
             break;
         }
     }
     (e.abs() <= reach + d).then_some((e, contrast))
 }
+
+/// Crossing tolerance (px) where it is the measurement, and where it only starts the
+/// pixel-model fit or the coarse pass.
+const CROSSING_TOL: f64 = 1e-3;
+const START_TOL: f64 = 0.03;
 
 /// Smallest half-width (px) of the pixel-model edge fit: from ±2.5 px its bias on a
 /// blurred step is under 0.005 px for optics σ 0.4-1.6 px; at ±1.85 px it reaches
@@ -210,19 +220,33 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
 #[derive(Clone, Copy, Debug)]
 pub struct SideSampling {
     pub corner_clearance: f64,
-    /// Room around a side of `len` px (a tag's border cell: `len / 8`).
-    pub room: fn(len_px: f64, shortest_px: f64) -> f64,
+    /// Room (px) either side of a side, across it.
+    pub room: fn(&SideExtent) -> f64,
     /// How far a corner may move in a pass beyond the search reach, as a fraction of the
     /// shortest side: rough corners found by thresholding lose the tips of acute corners
     /// (seen: 11 px on a 190 px side at grazing view), while the sides' lines are right.
     pub corner_slack: f64,
 }
 
+/// What a side's room is judged from (raw pixels).
+#[derive(Clone, Copy, Debug)]
+pub struct SideExtent {
+    /// The side's length.
+    pub len: f64,
+    /// The polygon's shortest side.
+    pub shortest: f64,
+    /// The polygon's extent across the side: the farthest corner from its line.
+    pub across: f64,
+}
+
 /// A tag's black square: profiles ~1 cell clear of the corners (AprilGrid crossing
-/// squares touch them), within the one-cell border.
+/// squares touch them), within the one-cell border — a border cell measured across the
+/// side (an eighth of the tag's extent that way), not along it: on a tag foreshortened
+/// 2:1 the long sides' cells are half as deep as they are long, and levels read a cell
+/// along reached into the bits (seen: corners 0.34 px off at 57 × 26 px).
 pub const TAG_SIDES: SideSampling = SideSampling {
     corner_clearance: 0.12,
-    room: |len, _| len / 8.0,
+    room: |side| side.across / 8.0,
     corner_slack: 0.0,
 };
 
@@ -266,8 +290,8 @@ pub fn refine_polygon(
         .collect::<Option<_>>()?;
     let mut reach = reach;
     let mut last = None;
-    for _pass in 0..2 {
-        let pass = refine_once(img, &plane, lens, reach, sampling)?;
+    for fine in [false, true] {
+        let pass = refine_once(img, &plane, lens, reach, sampling, fine)?;
         plane = pass.corners.clone();
         last = Some(pass);
         reach = 1.0;
@@ -293,12 +317,19 @@ struct Pass {
     contrast: f64,
 }
 
+/// Profile spacing (px) of the first pass, which only has to bring the sides within the
+/// second pass's 1 px reach: a third of the profiles, and no pixel-model fit.
+const COARSE_SPACING: f64 = 3.0;
+
+/// One pass of side sampling. `fine`: one profile per pixel and the pixel-model edge fit
+/// (the measurement); otherwise every [`COARSE_SPACING`] px, interpolated crossings only.
 fn refine_once(
     img: &Gray,
     plane: &[Vec2],
     lens: Lens,
     reach: f64,
     sampling: &SideSampling,
+    fine: bool,
 ) -> Option<Pass> {
     let n_sides = plane.len();
     if n_sides < 3 {
@@ -328,12 +359,23 @@ fn refine_once(
         if len_px < 6.0 {
             return None;
         }
-        let room = (sampling.room)(len_px, shortest);
+        let (pa, pb) = (px[side], px[(side + 1) % n_sides]);
+        let normal = Vec2::new(pb.y - pa.y, pa.x - pb.x) / len_px.max(1e-300);
+        let across = px
+            .iter()
+            .map(|v| (v - pa).dot(&normal).abs())
+            .fold(0.0, f64::max);
+        let room = (sampling.room)(&SideExtent {
+            len: len_px,
+            shortest,
+            across,
+        });
         let d = (0.45 * room).clamp(0.6, 2.5);
         let reach_here = reach.min(0.9 * room);
         let t0 = sampling.corner_clearance;
         let span = 1.0 - 2.0 * t0;
-        let samples = (len_px * span).ceil().max(6.0) as usize;
+        let spacing = if fine { 1.0 } else { COARSE_SPACING };
+        let samples = (len_px * span / spacing).ceil().max(6.0) as usize;
         let mut pts = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = t0 + span * (i as f64 + 0.5) / samples as f64;
@@ -343,13 +385,22 @@ fn refine_once(
             let p2 = lens.to_pixel(a + (b - a) * (t + dt))?;
             let tangent = (p2 - p).normalize();
             let n = Vec2::new(tangent.y, -tangent.x) * outward;
-            if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d) {
-                // The pixel model needs the levels either side: ±2.5 px at least (below
-                // that its four unknowns are poorly separated and the interpolated
-                // crossing is the better estimate).
-                let window = (d + 0.5).min(0.9 * room);
-                let e = if window >= MIN_FIT_WINDOW {
-                    fit_edge(img, p, n, e, window, contrast).unwrap_or(e)
+            // The pixel model needs the levels either side: ±2.5 px at least (below
+            // that its four unknowns are poorly separated and the interpolated crossing
+            // is the better estimate).
+            let window = (d + 0.5).min(0.9 * room);
+            let fit = fine && window >= MIN_FIT_WINDOW;
+            let tol = if fine && !fit {
+                CROSSING_TOL
+            } else {
+                START_TOL
+            };
+            if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d, tol) {
+                let e = if fit {
+                    // Where the fit does not settle, the precise crossing instead.
+                    fit_edge(img, p, n, e, window, contrast)
+                        .or_else(|| Some(edge_offset(img, p, n, reach_here, d, CROSSING_TOL)?.0))
+                        .unwrap_or(e)
                 } else {
                     e
                 };

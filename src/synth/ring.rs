@@ -32,11 +32,28 @@ pub const TARGET: LineTarget = LineTarget {
     length: 0.5,
     spacing: 0.2,
 };
-/// Ground distance from a camera to its target's nearest corner (m).
-const TARGET_DISTANCE: f64 = 0.35;
-/// The auxiliary camera: pitch below the horizon and distance to the pair's midpoint.
-const AUX_PITCH_DEG: f64 = 40.0;
-const AUX_DISTANCE: f64 = 1.0;
+/// Where the targets and the auxiliary camera stand: the paper gives neither (Table 2
+/// has the cameras only), so these are the factors of a placement study
+/// (`rigcal bench ring --target-distance --aux-distance --aux-pitch`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RingLayout {
+    /// Ground distance from a camera to its target's nearest corner (m).
+    pub target_distance: f64,
+    /// The auxiliary camera's pitch below the horizon (deg; Wu §4.1's best is 40°).
+    pub aux_pitch_deg: f64,
+    /// The auxiliary camera's distance to the midpoint of the pair it photographs (m).
+    pub aux_distance: f64,
+}
+
+impl Default for RingLayout {
+    fn default() -> Self {
+        Self {
+            target_distance: 0.35,
+            aux_pitch_deg: 40.0,
+            aux_distance: 1.0,
+        }
+    }
+}
 
 pub fn rig_camera() -> Camera {
     Camera::pinhole(796.44, 796.44, 512.0, 384.0, 1024, 768)
@@ -62,7 +79,13 @@ pub struct RingScene {
     pub ecf_from_aux: Vec<Pose>,
 }
 
+/// Table 2's ring in the default [`RingLayout`].
 pub fn table2_scene() -> RingScene {
+    ring_scene(&RingLayout::default())
+}
+
+/// Table 2's cameras with targets and auxiliary views placed by `layout`.
+pub fn ring_scene(layout: &RingLayout) -> RingScene {
     let ecf_from_cam: Vec<Pose> = TABLE2
         .iter()
         .map(|&(x, y, z, yaw)| {
@@ -77,7 +100,7 @@ pub fn table2_scene() -> RingScene {
         .map(|c| {
             // Diagonal (the symmetry axis) pointing back at the camera, P1 nearest.
             let ahead = Vec3::new(c.rot[(0, 2)], 0.0, c.rot[(2, 2)]).normalize();
-            let p1 = Vec3::new(c.trans.x, 0.0, c.trans.z) + ahead * TARGET_DISTANCE;
+            let p1 = Vec3::new(c.trans.x, 0.0, c.trans.z) + ahead * layout.target_distance;
             let quarter = |a: f64| so3::exp(&Vec3::new(0.0, a.to_radians(), 0.0)) * ahead;
             let (x, z) = (quarter(45.0), quarter(-45.0));
             let y = z.cross(&x);
@@ -95,9 +118,9 @@ pub fn table2_scene() -> RingScene {
                 + target_centre(&ecf_from_target[(k + 1) % 8]))
                 / 2.0;
             let out = Vec3::new(mid.x - centre.x, 0.0, mid.z - centre.z).normalize();
-            let p = AUX_PITCH_DEG.to_radians();
+            let p = layout.aux_pitch_deg.to_radians();
             let forward = -out * p.cos() + Vec3::y() * p.sin();
-            looking(mid - forward * AUX_DISTANCE, forward)
+            looking(mid - forward * layout.aux_distance, forward)
         })
         .collect();
     RingScene {
@@ -261,6 +284,18 @@ pub fn generate_with(
     aux: &Camera,
     scene: &RingScene,
 ) -> (SessionManifest, Truth) {
+    generate_split(rng, [noise_px, noise_px], rig, aux, scene)
+}
+
+/// [`generate_with`] with separate noise on the rig images and on the auxiliary images
+/// (`[rig, aux]`, px), to see which of the two limits the result.
+pub fn generate_split(
+    rng: &mut impl Rng,
+    [rig_noise, aux_noise]: [f64; 2],
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+) -> (SessionManifest, Truth) {
     let cam_ids: Vec<String> = (1..=8).map(|k| format!("cam{k}")).collect();
     let target_ids: Vec<String> = (1..=8).map(|k| format!("t{k}")).collect();
     let mut lines = BTreeMap::new();
@@ -273,7 +308,7 @@ pub fn generate_with(
                 &cam_from_target,
                 &TARGET,
                 &target_ids[k],
-                noise_px,
+                rig_noise,
                 rng,
             ),
         );
@@ -289,7 +324,7 @@ pub fn generate_with(
                     &aux_from_target,
                     &TARGET,
                     &target_ids[t],
-                    noise_px,
+                    aux_noise,
                     rng,
                 ));
             }
