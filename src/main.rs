@@ -213,6 +213,9 @@ enum BenchCommand {
         /// Placement study: auxiliary camera pitch below the horizon (deg).
         #[arg(long)]
         aux_pitch: Option<f64>,
+        /// Placement study: auxiliary images per pair (1-5), pitched 8° apart.
+        #[arg(long)]
+        aux_views: Option<usize>,
         /// Placement study: put the noise on `both`, only the `rig` or only the `aux` images.
         #[arg(long, default_value = "both")]
         noise_on: String,
@@ -435,6 +438,7 @@ fn run() -> Result<i32> {
                     target_distance,
                     aux_distance,
                     aux_pitch,
+                    aux_views,
                     noise_on,
                 },
         } => {
@@ -455,14 +459,16 @@ fn run() -> Result<i32> {
                 target_distance: target_distance.unwrap_or(default.target_distance),
                 aux_distance: aux_distance.unwrap_or(default.aux_distance),
                 aux_pitch_deg: aux_pitch.unwrap_or(default.aux_pitch_deg),
+                aux_views: aux_views.unwrap_or(default.aux_views),
             };
             // (`contains` is false for NaN.)
             let in_range = (0.05..=20.0).contains(&layout.target_distance)
                 && (0.2..=20.0).contains(&layout.aux_distance)
-                && (5.0..=85.0).contains(&layout.aux_pitch_deg);
+                && (5.0..=85.0).contains(&layout.aux_pitch_deg)
+                && (1..=5).contains(&layout.aux_views);
             if !in_range {
                 return Err(anyhow!(
-                    "--target-distance in 0.05..=20 m, --aux-distance in 0.2..=20 m, --aux-pitch in 5..=85 deg"
+                    "--target-distance in 0.05..=20 m, --aux-distance in 0.2..=20 m, --aux-pitch in 5..=85 deg, --aux-views in 1..=5"
                 ));
             }
             let study = layout != default || on != NoiseOn::Both;
@@ -476,8 +482,8 @@ fn run() -> Result<i32> {
                 rigcal::bench::ring::ring_accuracy_images(&noise, trials, seed)
             } else if study {
                 println!(
-                    "Placement: target {:.2} m ahead, auxiliary camera {:.2} m from the pair at {:.0}° pitch; noise on {noise_on}.",
-                    layout.target_distance, layout.aux_distance, layout.aux_pitch_deg
+                    "Placement: target {:.2} m ahead, auxiliary camera {:.2} m from the pair at {:.0}° pitch, {} view(s) per pair; noise on {noise_on}.",
+                    layout.target_distance, layout.aux_distance, layout.aux_pitch_deg, layout.aux_views
                 );
                 rigcal::bench::ring::ring_accuracy_layout(&noise, trials, seed, &layout, on)
             } else {

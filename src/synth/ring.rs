@@ -43,7 +43,15 @@ pub struct RingLayout {
     pub aux_pitch_deg: f64,
     /// The auxiliary camera's distance to the midpoint of the pair it photographs (m).
     pub aux_distance: f64,
+    /// Auxiliary images per pair: the first at `aux_pitch_deg`, the others steeper and
+    /// shallower by [`AUX_VIEW_PITCH_STEP_DEG`], 2×, … .
+    pub aux_views: usize,
 }
+
+/// Pitch step (deg) between the auxiliary views of one pair when there are several. A
+/// pitch step, not a turn about the pair: turning the camera by 8-20° laid one line
+/// group of some targets within 1° of the image plane (vanishing point at infinity).
+pub const AUX_VIEW_PITCH_STEP_DEG: f64 = 8.0;
 
 impl Default for RingLayout {
     fn default() -> Self {
@@ -51,6 +59,7 @@ impl Default for RingLayout {
             target_distance: 0.35,
             aux_pitch_deg: 40.0,
             aux_distance: 1.0,
+            aux_views: 1,
         }
     }
 }
@@ -72,11 +81,20 @@ fn looking(position: Vec3, forward: Vec3) -> Pose {
 }
 
 /// The scene in the ECF: `ecf_from_cam` per rig camera, `ecf_from_target` per target,
-/// `ecf_from_aux` per neighbouring pair `(k, k+1 mod 8)`.
+/// `ecf_from_aux[v·8 + k]` for view `v` of neighbouring pair `(k, k+1 mod 8)` (see
+/// [`RingScene::pair_of`]).
 pub struct RingScene {
     pub ecf_from_cam: Vec<Pose>,
     pub ecf_from_target: Vec<Pose>,
     pub ecf_from_aux: Vec<Pose>,
+}
+
+impl RingScene {
+    /// The pair `(k, k+1 mod 8)` auxiliary view `i` photographs.
+    pub fn pair_of(&self, i: usize) -> (usize, usize) {
+        let k = i % 8;
+        (k, (k + 1) % 8)
+    }
 }
 
 /// Table 2's ring in the default [`RingLayout`].
@@ -112,13 +130,16 @@ pub fn ring_scene(layout: &RingLayout) -> RingScene {
         let c = TARGET.corners();
         t.apply(&(c.iter().sum::<Vec3>() / LINES as f64))
     };
-    let ecf_from_aux = (0..8)
-        .map(|k| {
+    let ecf_from_aux = (0..8 * layout.aux_views.max(1))
+        .map(|i| {
+            let (k, v) = (i % 8, i / 8);
             let mid = (target_centre(&ecf_from_target[k])
                 + target_centre(&ecf_from_target[(k + 1) % 8]))
                 / 2.0;
+            // View v: 0, +1, −1, +2, −2, … pitch steps.
+            let step = v.div_ceil(2) as f64 * if v % 2 == 1 { 1.0 } else { -1.0 };
             let out = Vec3::new(mid.x - centre.x, 0.0, mid.z - centre.z).normalize();
-            let p = layout.aux_pitch_deg.to_radians();
+            let p = (layout.aux_pitch_deg + AUX_VIEW_PITCH_STEP_DEG * step).to_radians();
             let forward = -out * p.cos() + Vec3::y() * p.sin();
             looking(mid - forward * layout.aux_distance, forward)
         })
@@ -251,9 +272,9 @@ pub fn image_session(
         frame.images.insert(format!("cam{}", k + 1), path);
     }
     let centre = TARGET.corners().iter().sum::<Vec3>() / LINES as f64;
-    for (k, r) in m.ring.iter_mut().enumerate() {
-        let j = (k + 1) % 8;
-        let poses = [k, j].map(|t| scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[t]);
+    for (i, r) in m.ring.iter_mut().enumerate() {
+        let (k, j) = scene.pair_of(i);
+        let poses = [k, j].map(|t| scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t]);
         let u = |p: &Pose| aux.project(&p.apply(&centre)).map_or(0.0, |q| q.x);
         let (a, b) = (format!("t{}", k + 1), format!("t{}", j + 1));
         r.targets = if u(&poses[0]) <= u(&poses[1]) {
@@ -261,8 +282,8 @@ pub fn image_session(
         } else {
             vec![b, a]
         };
-        let path = format!("aux/{k}.png");
-        let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + k as u64));
+        let path = format!("aux/{i}.png");
+        let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + i as u64));
         files.insert(path.clone(), png(img));
         r.lines.clear();
         r.image = Some(path);
@@ -313,12 +334,12 @@ pub fn generate_split(
             ),
         );
     }
-    let ring = (0..8)
-        .map(|k| {
-            let j = (k + 1) % 8;
+    let ring = (0..scene.ecf_from_aux.len())
+        .map(|i| {
+            let (k, j) = scene.pair_of(i);
             let mut l = Vec::new();
             for t in [k, j] {
-                let aux_from_target = scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[t];
+                let aux_from_target = scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t];
                 l.extend(sample_lines(
                     aux,
                     &aux_from_target,
@@ -329,7 +350,7 @@ pub fn generate_split(
                 ));
             }
             RingSpec {
-                index: k as i64,
+                index: i as i64,
                 targets: vec![target_ids[k].clone(), target_ids[j].clone()],
                 image: None,
                 lines: l,
