@@ -241,7 +241,10 @@ fn several_auxiliary_viewpoints_per_pair_are_exact_and_average_the_noise() {
     let doc = run(&m);
     assert_eq!(doc.status, Status::Succeeded, "{:?}", doc.reasons);
     for (cam, gr, gt, cr, ct) in errors(&doc, &truth) {
-        assert!(gr < 1e-6 && gt < 1e-6 && cr < 1e-6 && ct < 1e-6, "{cam}: {gr} {gt} {cr} {ct}");
+        assert!(
+            gr < 1e-6 && gt < 1e-6 && cr < 1e-6 && ct < 1e-6,
+            "{cam}: {gr} {gt} {cr} {ct}"
+        );
     }
     // Same seeds, one view vs three views per pair: RMS over 12 trials of the global
     // translation error of cameras 4-6 (3-4 transforms from the reference).
@@ -262,7 +265,10 @@ fn several_auxiliary_viewpoints_per_pair_are_exact_and_average_the_noise() {
         (sq / n as f64).sqrt()
     };
     let (one, several) = (rms(&table2_scene()), rms(&three));
-    assert!(several < 0.8 * one, "three views {several} m vs one {one} m");
+    assert!(
+        several < 0.8 * one,
+        "three views {several} m vs one {one} m"
+    );
 }
 
 #[test]

@@ -33,8 +33,8 @@ pub struct QuadOptions {
     /// [`MIN_CONTRAST_RANGE`]. The C library's fixed 5 lets σ 2 grey noise segment flat
     /// background into thousands of components.
     pub min_contrast: Option<u8>,
-    /// Search a copy of the image whose bright areas are grown by one pixel (3×3
-    /// maximum): it cuts the corner-to-corner contact between an AprilGrid's tags and its
+    /// Search a copy of the image whose bright areas are grown by one pixel (maximum
+    /// over the 4-neighbourhood): it cuts the corner-to-corner contact between an AprilGrid's tags and its
     /// crossing squares, which otherwise joins every tag's border to its neighbours' and
     /// leaves no quad to find. It also thins black bits, so it is a second pass for
     /// boards, never the first.
@@ -160,24 +160,21 @@ fn detect_with(
         .collect())
 }
 
-/// 3×3 maximum filter (separable), borders clamped.
+/// Maximum over each pixel and its four neighbours (a cross, not the 3×3 square: it
+/// cuts diagonal contacts just as well and thins black less; on the 30 grid views of
+/// `bench detect --views 10` the quad detector found 988 of 1077 tags on the cross-grown
+/// copy against 832, and a seed on every view against 27 of 30). Borders clamped.
 fn grow_bright(px: &[u8], w: usize, h: usize) -> Vec<u8> {
-    let mut rows = vec![0u8; px.len()];
-    for y in 0..h {
-        let r = &px[y * w..(y + 1) * w];
-        for x in 0..w {
-            let lo = x.saturating_sub(1);
-            let hi = (x + 1).min(w - 1);
-            rows[y * w + x] = r[lo].max(r[x]).max(r[hi]);
-        }
-    }
-    let mut out = vec![0u8; px.len()];
+    let mut out = px.to_vec();
     for y in 0..h {
         let (up, down) = (y.saturating_sub(1), (y + 1).min(h - 1));
         for x in 0..w {
-            out[y * w + x] = rows[up * w + x]
-                .max(rows[y * w + x])
-                .max(rows[down * w + x]);
+            let (left, right) = (x.saturating_sub(1), (x + 1).min(w - 1));
+            out[y * w + x] = px[y * w + x]
+                .max(px[y * w + left])
+                .max(px[y * w + right])
+                .max(px[up * w + x])
+                .max(px[down * w + x]);
         }
     }
     out
