@@ -480,14 +480,14 @@ fn run() -> Result<i32> {
                 }
                 println!("From rendered images through the line-target detector; σ is image noise in grey levels (of 255).");
                 rigcal::bench::ring::ring_accuracy_images(&noise, trials, seed)
-            } else if study {
-                println!(
-                    "Placement: target {:.2} m ahead, auxiliary camera {:.2} m from the pair at {:.0}° pitch, {} view(s) per pair; noise on {noise_on}.",
-                    layout.target_distance, layout.aux_distance, layout.aux_pitch_deg, layout.aux_views
-                );
-                rigcal::bench::ring::ring_accuracy_layout(&noise, trials, seed, &layout, on)
             } else {
-                rigcal::bench::ring::ring_accuracy(&noise, trials, seed)
+                if study {
+                    println!(
+                        "Placement: target {:.2} m ahead, auxiliary camera {:.2} m from the pair at {:.0}° pitch, {} view(s) per pair; noise on {noise_on}.",
+                        layout.target_distance, layout.aux_distance, layout.aux_pitch_deg, layout.aux_views
+                    );
+                }
+                rigcal::bench::ring::ring_accuracy_layout(&noise, trials, seed, &layout, on)
             };
             rigcal::bench::ring::print_table(&rows);
             Ok(0)

@@ -3,7 +3,6 @@
 //! and of the globally optimised extrinsics (Wu Fig. 7-8), the mean reported 1-σ and the
 //! normalised estimation error squared (NEES, 6 is ideal) of the global covariance.
 
-use super::accuracy::synthetic_session;
 use crate::geometry::Pose;
 use crate::pipeline::{calibrate, CalibOptions};
 use crate::result::{ResultDocument, Status};
@@ -35,15 +34,6 @@ fn err(est: &Pose, truth: &Pose) -> (f64, f64) {
     (r.to_degrees(), t * 1e3)
 }
 
-/// Run `trials` noisy sessions per noise level; one row per (noise, camera). The noise
-/// is on the sampled line points (pixels).
-pub fn ring_accuracy(noise: &[f64], trials: usize, seed: u64) -> Vec<RingRow> {
-    study(noise, trials, |sigma, k| {
-        let (session, truth) = synthetic_session("wu-table2", seed + k as u64, sigma)?;
-        Some((calibrate(&session, &CalibOptions::default()), truth))
-    })
-}
-
 /// Which images get the noise in a placement study.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum NoiseOn {
@@ -54,9 +44,10 @@ pub enum NoiseOn {
     Aux,
 }
 
-/// [`ring_accuracy`] with the targets and the auxiliary camera placed by `layout`, the
-/// noise on `on`: the placement study (the same seeds give the same noise draws as the
-/// default preset when `layout` is the default and `on` is `Both`).
+/// Run `trials` noisy sessions per noise level (pixels on the sampled line points) with
+/// the targets and the auxiliary camera placed by `layout` and the noise on `on`; one row
+/// per (noise, camera). With the default layout and `Both` these are the `wu-table2`
+/// preset's sessions, seed for seed; otherwise a placement study.
 pub fn ring_accuracy_layout(
     noise: &[f64],
     trials: usize,

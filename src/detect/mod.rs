@@ -110,15 +110,20 @@ pub fn detect_tags(
 ) -> Result<ImageDetections, String> {
     let lens = Lens(camera);
     let wanted = wanted(targets);
-    let mut candidates = quads::detect(img, &opts.quads)?;
+    // Every pass below segments with the same contrast floor: the noise is estimated once.
+    let base = quads::QuadOptions {
+        min_contrast: Some(opts.quads.contrast_for(img)),
+        ..opts.quads.clone()
+    };
+    let mut candidates = quads::detect(img, &base)?;
     // Single tags have no layout to complete them from, and the decimated search loses
     // small oblique ones (9 in 10 of those missed among 120 views of 24-40 px tags at up
     // to 60° were found at full resolution): a full-resolution pass adds the ids the first
     // one did not find (~10 ms on 1600×1200 with the noise-adaptive contrast floor).
-    if opts.quads.decimate > 1.0 && wanted.iter().any(|w| matches!(w, Wanted::Tags(..))) {
+    if base.decimate > 1.0 && wanted.iter().any(|w| matches!(w, Wanted::Tags(..))) {
         let full = quads::QuadOptions {
             decimate: 1.0,
-            ..opts.quads.clone()
+            ..base.clone()
         };
         let first: std::collections::BTreeSet<u32> = candidates.iter().map(|c| c.id).collect();
         candidates.extend(
@@ -149,7 +154,7 @@ pub fn detect_tags(
         let grown = quads::QuadOptions {
             decimate: 1.0,
             grow_bright: true,
-            ..opts.quads.clone()
+            ..base.clone()
         };
         let max_h = opts.quads.max_hamming;
         let again: Vec<quads::Candidate> = quads::detect(img, &grown)?

@@ -34,10 +34,10 @@ pub struct QuadOptions {
     /// background into thousands of components.
     pub min_contrast: Option<u8>,
     /// Search a copy of the image whose bright areas are grown by one pixel (maximum
-    /// over the 4-neighbourhood): it cuts the corner-to-corner contact between an AprilGrid's tags and its
-    /// crossing squares, which otherwise joins every tag's border to its neighbours' and
-    /// leaves no quad to find. It also thins black bits, so it is a second pass for
-    /// boards, never the first.
+    /// over the 4-neighbourhood): it cuts the corner-to-corner contact between an
+    /// AprilGrid's tags and its crossing squares, which otherwise joins every tag's border
+    /// to its neighbours' and leaves no quad to find. It also thins black bits, so it is a
+    /// second pass for boards, never the first.
     pub grow_bright: bool,
 }
 
