@@ -264,7 +264,9 @@ try {
   await bp.getByLabel("Vehicle").fill("fleet-5");
   await bp.getByRole("button", { name: "Apply" }).click();
   await bp.waitForFunction(() => /vehicle=fleet-5/.test(location.hash));
-  await bp.locator("#jobs-body tr[data-job]").first().waitFor();
+  // The rows of the previous filter stay until the new page has loaded: wait for rows
+  // that answer the vehicle query, not merely for rows.
+  await bp.locator('#jobs-body[data-query*="vehicle_id=fleet-5"] tr[data-job]').first().waitFor();
   const vehicles = await bp.locator("#jobs-body tr[data-job] td:nth-child(2)").allTextContents();
   assert.ok(vehicles.length > 0 && vehicles.every((v) => v === "fleet-5"), `vehicle filter: ${vehicles}`);
   await bctx.close();

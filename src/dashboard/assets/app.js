@@ -334,7 +334,7 @@ function renderJobs(query) {
   h("div", {}, h("label", { for: "to" }, "Created up to"), h("input", { id: "to", name: "to", type: "date", value: f.to })),
   h("button", { type: "submit" }, "Apply"),
   h("a", { class: "button secondary", href: "#/jobs" }, "Clear"));
-  const body = h("tbody", { id: "jobs-body" });
+  const body = h("tbody", { id: "jobs-body", "aria-busy": "true" });
   const table = h("div", { class: "table-wrap" }, h("table", { "aria-describedby": "jobs-summary" },
     h("caption", { class: "visually-hidden" }, "Calibration jobs, newest first"),
     h("thead", {}, h("tr", {},
@@ -363,6 +363,11 @@ async function loadJobs(view, first) {
     if (state.view !== view) return;
     const body = document.getElementById("jobs-body");
     body.replaceChildren(...data.jobs.map(jobRow));
+    // Which query these rows answer: the filters re-render through a hash change, which
+    // lands a task after the form is submitted, so "rows are present" alone does not say
+    // they are the filtered ones (the browser test waits on this).
+    body.dataset.query = p.toString();
+    body.setAttribute("aria-busy", "false");
     if (!data.jobs.length) body.append(h("tr", {}, h("td", { colspan: 9, class: "muted" }, "No jobs match.")));
     const a = data.total ? data.offset + 1 : 0;
     const b = data.offset + data.jobs.length;
