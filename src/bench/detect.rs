@@ -27,6 +27,10 @@ pub struct DetectRow {
     pub median_ms: f64,
     /// The quad detector alone.
     pub quad_median_ms: f64,
+    /// The same detection with the whole-tag fit off (edge-measured corners only), on the
+    /// same tags found by both: corner RMS and median time per image.
+    pub edge_only_rms_px: f64,
+    pub edge_only_median_ms: f64,
 }
 
 fn median(v: &mut [f64]) -> f64 {
@@ -70,6 +74,11 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
     let mut by_size = [(0.0, 0usize); 3];
     let mut times = Vec::new();
     let mut quad_times = Vec::new();
+    let (mut esq, mut en, mut edge_times) = (0.0, 0usize, Vec::new());
+    let edge_only = DetectOptions {
+        whole_tag_fit: false,
+        ..DetectOptions::default()
+    };
     for i in 0..cell.n {
         let params = cell_params(cell, i, seed);
         let band = SIZE_BANDS.iter().filter(|&&b| params.tag_px >= b).count();
@@ -106,6 +115,17 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
             }
         }
         let start = Instant::now();
+        let edge = detect::detect_tags(&gray, &s.targets, Some(&s.camera), &edge_only);
+        edge_times.push(start.elapsed().as_secs_f64() * 1e3);
+        for tag in edge.iter().flat_map(|e| &e.tags) {
+            if let Some(truth) = s.truth.get(&tag.id) {
+                for (k, t) in truth.iter().enumerate() {
+                    esq += (corner(tag, k) - t).norm_squared();
+                    en += 1;
+                }
+            }
+        }
+        let start = Instant::now();
         let raw = quads::detect(&gray, &quads::QuadOptions::default());
         quad_times.push(start.elapsed().as_secs_f64() * 1e3);
         if let Ok(raw) = raw {
@@ -125,6 +145,8 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
     row.quad_rms_px = (qsq / qn.max(1) as f64).sqrt();
     row.median_ms = median(&mut times);
     row.quad_median_ms = median(&mut quad_times);
+    row.edge_only_rms_px = (esq / en.max(1) as f64).sqrt();
+    row.edge_only_median_ms = median(&mut edge_times);
     row
 }
 
@@ -183,7 +205,7 @@ pub fn study(n: usize, width: u32, height: u32) -> Vec<Cell> {
 
 pub fn print_table(rows: &[DetectRow]) {
     println!(
-        "{:<34} {:>6} {:>7} {:>7} {:>8} {:>6} {:>7} {:>10} {:>9} {:>9} {:>8} {:>8} | {:>7} {:>7} {:>7}",
+        "{:<34} {:>6} {:>7} {:>7} {:>8} {:>6} {:>7} {:>10} {:>9} {:>9} {:>8} {:>8} | {:>7} {:>7} {:>7} | {:>9} {:>8}",
         "cell",
         "images",
         "visible",
@@ -198,11 +220,13 @@ pub fn print_table(rows: &[DetectRow]) {
         "quad ms",
         "<40px",
         "40-80",
-        "≥80"
+        "≥80",
+        "edge rms",
+        "edge ms"
     );
     for r in rows {
         println!(
-            "{:<34} {:>6} {:>7} {:>7} {:>8.2} {:>6} {:>7} {:>10.4} {:>9.3} {:>9.3} {:>8.1} {:>8.1} | {:>7.4} {:>7.4} {:>7.4}",
+            "{:<34} {:>6} {:>7} {:>7} {:>8.2} {:>6} {:>7} {:>10.4} {:>9.3} {:>9.3} {:>8.1} {:>8.1} | {:>7.4} {:>7.4} {:>7.4} | {:>9.4} {:>8.1}",
             r.label,
             r.images,
             r.visible,
@@ -217,7 +241,9 @@ pub fn print_table(rows: &[DetectRow]) {
             r.quad_median_ms,
             r.corner_rms_by_size_px[0],
             r.corner_rms_by_size_px[1],
-            r.corner_rms_by_size_px[2]
+            r.corner_rms_by_size_px[2],
+            r.edge_only_rms_px,
+            r.edge_only_median_ms
         );
     }
 }
