@@ -9,9 +9,11 @@
 //! is known, every cell of the tag is known, so the image of the tag is predicted as a
 //! whole — pattern → plane (homography from the four corners) → raw pixels (the lens),
 //! each pixel collecting light through its own area blurred by a Gaussian of unknown σ,
-//! black, white and the surround at unknown levels — and the corners and σ are the ones
-//! whose prediction fits the pixels best (Gauss-Newton with Levenberg damping, numeric
-//! Jacobian; the three levels are linear and solved exactly at every step).
+//! black, white and the surround at unknown levels, with a first-order shading — and the
+//! corners and σ are the ones whose prediction fits the pixels best: Gauss-Newton with
+//! Levenberg damping, Huber-weighted; the seven level and shading terms are linear and
+//! solved exactly at every step (variable projection); the Jacobian is analytic, from the
+//! blurred model's gradient and the pattern's motion (see [`jacobian`]).
 
 use super::board::cell_white;
 use super::gray::Gray;
@@ -29,7 +31,18 @@ pub const WHOLE_FIT_BELOW_PX: f64 = 46.0;
 /// the blur is applied on this finer grid, not to pixel values (a Gaussian applied to
 /// box-integrated pixels moves edges by a few hundredths of a pixel with their phase).
 const SUB: usize = 2;
+
+/// Width, in sub-samples, of the box over which each sub-sample averages the sharp
+/// pattern: it makes the sampled pattern continuous in the corners. One sub-sample wide,
+/// the sampling's jitter put the Jacobian 15-20 % off the objective's own derivative
+/// (two: 8-9 %); its blur is counted in the reported σ.
 const AA_SUBSAMPLES: f64 = 2.0;
+
+/// How far (cells) beyond the black square pixels are compared: the one-cell white ring
+/// every tag36h11 print has. Beyond it a single tag's surround is unknown (a free level,
+/// which cannot follow a print edge: comparing to 1.5 cells left 2-6 grey of misfit on
+/// oblique 30 px tags and corners 0.08 px off), and a grid's next tags begin past the gap.
+const REACH_CELLS: f64 = 1.0;
 
 /// What surrounds the tag's black square beyond its one-cell white ring.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -45,17 +58,6 @@ impl Surround {
     /// Whether the model has a free surround level (a grid's surround is its white gap).
     fn free_outside(self) -> bool {
         self == Surround::Single
-    }
-    /// How far (cells) beyond the black square pixels are compared: the one-cell white
-    /// ring every tag36h11 print has. Beyond it a single tag's surround is unknown (a
-    /// free level, which cannot follow a print edge: comparing to 1.5 cells left 2-6 grey
-    /// of misfit on oblique 30 px tags and corners 0.08 px off), and a grid's next tags
-    /// begin past the gap.
-    fn reach_cells(self) -> f64 {
-        match self {
-            Surround::Single => 1.0,
-            Surround::Grid { .. } => 1.0,
-        }
     }
 }
 
@@ -222,14 +224,10 @@ const COARSE: usize = 4;
 const MAX_SIGMA: f64 = 1.5;
 const MIN_SIGMA: f64 = 0.25;
 
-fn region(
-    img: &Gray,
-    corners: &[Vec2; 4],
-    lens: Lens,
-    surround: Surround,
-    sub_n: usize,
-) -> Option<Region> {
-    let m = surround.reach_cells();
+/// The region of the tag with corners `corners` (raw px), sampled `sub_n` times per
+/// pixel side; `None` when it leaves the image or is implausibly large.
+fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<Region> {
+    let m = REACH_CELLS;
     let h = pattern_to_plane(corners, lens)?;
     let hinv = h.try_inverse()?;
     let to_px = |u: f64, v: f64| -> Option<Vec2> {
@@ -740,7 +738,7 @@ pub fn fit_whole_tag(
     id: u32,
     surround: Surround,
 ) -> Option<WholeFit> {
-    let reg = region(img, start, lens, surround, SUB)?;
+    let reg = region(img, start, lens, SUB)?;
     if reg.pixels.len() < 64 {
         return None;
     }
@@ -896,7 +894,7 @@ mod tests {
             let img = Gray::from_luma8(&s.image);
             let lens = Lens(Some(&s.camera));
             let pat = Pattern::new(id, surround);
-            let reg = region(&img, truth, lens, surround, 8).expect("region");
+            let reg = region(&img, truth, lens, 8).expect("region");
             let mut p = Params::zeros();
             for k in 0..4 {
                 p[2 * k] = truth[k].x + 0.05 * (k as f64 - 1.5);
