@@ -62,7 +62,7 @@ impl Surround {
 }
 
 /// Pattern cell classes: the model's grey level is `black + Δw·white + Δo·outside`.
-#[derive(Clone, Copy)]
+#[derive(Clone, Copy, PartialEq)]
 enum Class {
     Black,
     White,
@@ -119,7 +119,7 @@ fn crossing_cover(surround: Surround, pu: f64, pv: f64, r: f64) -> f64 {
 struct Pattern {
     surround: Surround,
     /// Cells `(i, j)` for `i, j ∈ [-TABLE_PAD, 8 + TABLE_PAD)`; `Outside` beyond.
-    table: [[u8; TABLE]; TABLE],
+    table: [[Class; TABLE]; TABLE],
 }
 
 const TABLE_PAD: i32 = 4;
@@ -127,26 +127,21 @@ const TABLE: usize = 8 + 2 * TABLE_PAD as usize;
 
 impl Pattern {
     fn new(id: u32, surround: Surround) -> Pattern {
-        let mut table = [[2u8; TABLE]; TABLE];
+        let mut table = [[Class::Outside; TABLE]; TABLE];
         for (jj, row) in table.iter_mut().enumerate() {
             for (ii, cell) in row.iter_mut().enumerate() {
-                let (i, j) = (ii as i32 - TABLE_PAD, jj as i32 - TABLE_PAD);
-                *cell = match class(id, surround, i, j) {
-                    Class::Black => 0,
-                    Class::White => 1,
-                    Class::Outside => 2,
-                };
+                *cell = class(id, surround, ii as i32 - TABLE_PAD, jj as i32 - TABLE_PAD);
             }
         }
         Pattern { surround, table }
     }
 
-    fn at(&self, i: i32, j: i32) -> u8 {
+    fn at(&self, i: i32, j: i32) -> Class {
         let (ii, jj) = (i + TABLE_PAD, j + TABLE_PAD);
         if (0..TABLE as i32).contains(&ii) && (0..TABLE as i32).contains(&jj) {
             self.table[jj as usize][ii as usize]
         } else {
-            2
+            Class::Outside
         }
     }
 }
@@ -364,6 +359,10 @@ fn sharp_fields(
     let far = -(TABLE_PAD as f64) + 1.0..8.0 + TABLE_PAD as f64 - 1.0;
     let sw = reg.w * reg.sub;
     for (rr, &(lo, hi)) in cols.iter().enumerate() {
+        // A sub-row no compared pixel reaches is never read.
+        if lo >= hi {
+            continue;
+        }
         let a = ((lo as i64 - reach) * reg.sub as i64).max(0) as usize;
         let b = (((hi as i64 + reach) * reg.sub as i64).max(0) as usize).min(sw);
         for k in rr * sw + a..rr * sw + b.max(a) {
@@ -383,17 +382,17 @@ fn sharp_fields(
             if su[1].1 == 0.0 && sv[1].1 == 0.0 {
                 // Inside one cell (most sub-samples).
                 match pat.at(su[0].0, sv[0].0) {
-                    1 => wsum = 1.0,
-                    2 => osum = 1.0,
-                    _ => {}
+                    Class::White => wsum = 1.0,
+                    Class::Outside => osum = 1.0,
+                    Class::Black => {}
                 }
             } else {
                 for (i, fi) in su {
                     for (j, fj) in sv {
                         match pat.at(i, j) {
-                            1 => wsum += fi * fj,
-                            2 => osum += fi * fj,
-                            _ => {}
+                            Class::White => wsum += fi * fj,
+                            Class::Outside => osum += fi * fj,
+                            Class::Black => {}
                         }
                     }
                 }
