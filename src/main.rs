@@ -70,15 +70,29 @@ enum Command {
         #[arg(long)]
         camera: Option<PathBuf>,
     },
-    /// Write a synthetic session and its ground truth (session.json, truth.json).
+    /// Write a synthetic session and its ground truth (session.json, truth.json; the
+    /// realistic hall presets also corners.json, every image's visible tag corners).
     Synth {
         #[arg(long)]
         preset: String,
         #[arg(long, default_value_t = 0)]
         seed: u64,
-        /// Pixel noise σ.
+        /// Pixel noise σ of the observations (sessions of detections).
         #[arg(long, default_value_t = 0.0)]
         noise: f64,
+        /// Render the capture's images (hall presets: car-hall, car-hall-planar,
+        /// car-hall-isolated, fisheye-handheld) with blur, vignetting, gain, noise, JPEG.
+        #[arg(long)]
+        images: bool,
+        /// Image size of the hall presets, e.g. 1024x768 (intrinsics scale with it).
+        #[arg(long, value_parser = parse_size)]
+        size: Option<(u32, u32)>,
+        /// Sensor noise σ of rendered images, grey levels.
+        #[arg(long, default_value_t = 1.0)]
+        grey_noise: f64,
+        /// Write PNG instead of JPEG (q 92).
+        #[arg(long)]
+        png: bool,
         /// Output directory.
         #[arg(long, default_value = ".")]
         out: PathBuf,
@@ -268,6 +282,18 @@ fn main() {
     }
 }
 
+/// `WxH`, e.g. `1024x768`.
+fn parse_size(s: &str) -> std::result::Result<(u32, u32), String> {
+    let (w, h) = s
+        .split_once('x')
+        .ok_or_else(|| format!("WIDTHxHEIGHT such as 1024x768, got {s:?}"))?;
+    let n = |x: &str| {
+        x.parse::<u32>()
+            .map_err(|_| format!("WIDTHxHEIGHT such as 1024x768, got {s:?}"))
+    };
+    Ok((n(w)?, n(h)?))
+}
+
 fn check_preset(preset: &str) -> Result<()> {
     if rigcal::synth::PRESETS.contains(&preset) {
         Ok(())
@@ -384,9 +410,47 @@ fn run() -> Result<i32> {
             seed,
             noise,
             out,
+            images,
+            size,
+            grey_noise,
+            png,
         } => {
             if !(noise.is_finite() && noise >= 0.0) {
                 return Err(anyhow!("--noise: a non-negative pixel σ, got {noise}"));
+            }
+            if rigcal::synth::hall::PRESETS.contains(&preset.as_str()) {
+                if !(grey_noise.is_finite() && grey_noise >= 0.0) {
+                    return Err(anyhow!(
+                        "--grey-noise: a non-negative σ in grey levels, got {grey_noise}"
+                    ));
+                }
+                let hall = rigcal::synth::hall::hall(&preset, seed, size)
+                    .ok_or_else(|| anyhow!("--size: 64x64 to 8192x8192"))?;
+                let nuisance = rigcal::synth::hall::Nuisance {
+                    noise: grey_noise,
+                    jpeg_quality: (!png).then_some(92),
+                    ..Default::default()
+                };
+                let w = rigcal::synth::hall::write_capture(
+                    &hall,
+                    &out,
+                    images.then_some(&nuisance),
+                    noise,
+                    seed,
+                )?;
+                eprintln!(
+                    "wrote {} ({} images, {} fully visible tags)",
+                    out.join("session.json").display(),
+                    w.images,
+                    w.visible_tags
+                );
+                return Ok(0);
+            }
+            if images || size.is_some() {
+                return Err(anyhow!(
+                    "--images/--size: only for the hall presets ({})",
+                    rigcal::synth::hall::PRESETS.join(", ")
+                ));
             }
             let (session, truth) =
                 rigcal::synth::generate(&preset, seed, noise).ok_or_else(|| {

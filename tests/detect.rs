@@ -500,3 +500,128 @@ fn bad_images_are_skipped_and_reported() {
     let (dt, dr) = rear_error(&doc, &truth);
     assert!(dt < 0.005 && dr < 0.1, "rear off by {dt} m, {dr}°");
 }
+
+/// Boards cut by every image border, through every lens: every reported corner is
+/// measured by pixels inside the image (at least `BORDER_MARGIN` from the border), is
+/// within 0.5 px of the truth, and the detections make a valid session; the tags whose
+/// corners are all well inside are found.
+#[test]
+fn boards_cut_by_the_border_give_only_valid_observations() {
+    use rigcal::detect::board::GridLayout;
+    use rigcal::detect::BORDER_MARGIN;
+    let (w, h) = (640u32, 480u32);
+    let layout = GridLayout {
+        rows: 6,
+        cols: 6,
+        tag_size: 0.1,
+        spacing: 0.3,
+        first_id: 0,
+    };
+    let target = TargetSpec::Aprilgrid {
+        id: "board".into(),
+        rows: 6,
+        cols: 6,
+        tag_size: 0.1,
+        tag_spacing: 0.3,
+        first_id: 0,
+    };
+    let side = layout.cols as f64 * layout.pitch() - layout.gap();
+    let (mut checked, mut inside_found, mut inside_total) = (0, 0, 0);
+    for lens in [Lens::Pinhole, Lens::Radtan, Lens::Equidistant] {
+        let cam = lens.camera(w, h);
+        // The board's centre on each border in turn (and just past it), facing the
+        // camera, tags ~35 px across.
+        for (bu, bv) in [(0.0, 0.5), (1.0, 0.5), (0.5, 0.0), (0.5, 1.0), (0.02, 0.03)] {
+            for shift in [-0.4, 0.0, 0.35] {
+                let depth = cam.fx * layout.tag_size / 35.0;
+                let px = Vec2::new(
+                    bu * (w - 1) as f64 + shift * 60.0 * (if bu == 0.5 { 1.0 } else { 0.0 }),
+                    bv * (h - 1) as f64 + shift * 60.0 * (if bv == 0.5 { 1.0 } else { 0.0 }),
+                );
+                let ray = cam.unproject(&px).unwrap();
+                let centre = Vec3::new(ray.x, ray.y, 1.0) * depth;
+                let rot = so3::exp(&Vec3::new(0.2 * shift, -0.15, 0.3 + shift))
+                    * nalgebra::Matrix3::from_diagonal(&Vec3::new(1.0, -1.0, -1.0));
+                let pose = Pose::new(rot, centre - rot * Vec3::new(side / 2.0, side / 2.0, 0.0));
+                let img = render(
+                    &cam,
+                    &pose,
+                    &|x, y| layout.shade(x, y),
+                    &RenderOptions {
+                        noise_sigma: 1.0,
+                        blur_sigma: 0.6,
+                        seed: checked as u64,
+                        ..Default::default()
+                    },
+                );
+                let d = detect_tags(
+                    &Gray::from_luma8(&img),
+                    std::slice::from_ref(&target),
+                    Some(&cam),
+                    &DetectOptions::default(),
+                )
+                .unwrap();
+                let truth = |id: u32, k: usize| {
+                    let b = layout.corner(id, k).unwrap();
+                    rigcal::synth::render::project_board(&cam, &pose, b)
+                };
+                for p in &d.points {
+                    let m = BORDER_MARGIN;
+                    assert!(
+                        p.u >= m
+                            && p.v >= m
+                            && p.u <= (w - 1) as f64 - m
+                            && p.v <= (h - 1) as f64 - m,
+                        "{lens:?} border ({bu}, {bv}) shift {shift}: {} at ({:.2}, {:.2})",
+                        p.point,
+                        p.u,
+                        p.v
+                    );
+                    let mut parts = p.point.split(':').skip(1);
+                    let id: u32 = parts.next().unwrap().parse().unwrap();
+                    let k: usize = parts.next().unwrap().parse().unwrap();
+                    let t = truth(id, k).unwrap();
+                    let err = (Vec2::new(p.u, p.v) - t).norm();
+                    assert!(err < 0.5, "{lens:?}: {} is {err:.2} px off", p.point);
+                }
+                // Tags wholly 8 px inside the image are found.
+                for id in layout.ids() {
+                    let corners: Option<Vec<Vec2>> = (0..4).map(|k| truth(id, k)).collect();
+                    let Some(c) = corners else { continue };
+                    let well_inside = c.iter().all(|q| {
+                        q.x > 8.0 && q.y > 8.0 && q.x < (w - 9) as f64 && q.y < (h - 9) as f64
+                    });
+                    if well_inside {
+                        inside_total += 1;
+                        inside_found += d.tags.iter().any(|t| t.id == id) as usize;
+                    }
+                }
+                // The detections as a session: it validates.
+                let mut obs = serde_json::Map::new();
+                obs.insert(
+                    "cam".into(),
+                    serde_json::to_value(
+                        d.points
+                            .iter()
+                            .map(|p| serde_json::json!({"point": p.point, "u": p.u, "v": p.v}))
+                            .collect::<Vec<_>>(),
+                    )
+                    .unwrap(),
+                );
+                let spec = serde_json::to_value(rigcal::synth::camera_spec("cam", &cam)).unwrap();
+                let manifest = serde_json::json!({
+                    "version": 1, "reference_camera": "cam", "cameras": [spec],
+                    "targets": [target], "frames": [{"index": 0, "observations": obs}],
+                });
+                rigcal::session::parse_session(manifest.to_string().as_bytes())
+                    .unwrap_or_else(|e| panic!("{lens:?} ({bu}, {bv}): {e}"));
+                checked += 1;
+            }
+        }
+    }
+    assert_eq!(checked, 45);
+    assert!(
+        inside_found as f64 >= 0.99 * inside_total as f64,
+        "{inside_found}/{inside_total} tags well inside were found"
+    );
+}

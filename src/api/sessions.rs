@@ -114,14 +114,29 @@ async fn run_check(session: Session) -> Option<String> {
     if !undetected_images(&session).is_empty() {
         return None;
     }
-    tokio::task::spawn_blocking(move || {
+    // The check is advice before a solve: if it fails (a bug), the session is still
+    // stored and the failure is logged as the internal error it is, not hidden.
+    let outcome = tokio::task::spawn_blocking(move || {
         std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| capture_check(&session)))
-            .ok()
-            .and_then(|c| serde_json::to_string(&c).ok())
     })
-    .await
-    .ok()
-    .flatten()
+    .await;
+    match outcome {
+        Ok(Ok(check)) => match serde_json::to_string(&check) {
+            Ok(text) => Some(text),
+            Err(e) => {
+                tracing::error!("internal error: the capture check did not serialise: {e}");
+                None
+            }
+        },
+        Ok(Err(_)) => {
+            tracing::error!("internal error: the capture check panicked");
+            None
+        }
+        Err(e) => {
+            tracing::error!("internal error: the capture check task failed: {e}");
+            None
+        }
+    }
 }
 
 fn content_type(headers: &HeaderMap) -> String {

@@ -153,6 +153,8 @@ pub fn capture_check(session: &Session) -> CaptureCheck {
         }
     }
     let traj = if nc >= 2 && reasons.iter().all(|r| r.code == "detections_pending") {
+        // Its only error is "no camera observes any point", which the coverage reasons
+        // above already name per camera.
         trajectory::estimate(session, &LmOptions::default()).ok()
     } else {
         None

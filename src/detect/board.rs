@@ -14,11 +14,24 @@ pub fn cell_white(id: u32, cx: usize, cy: usize) -> bool {
     let Some(code) = CODES.get(id as usize) else {
         return false;
     };
-    BIT_CELLS
-        .iter()
-        .position(|&(x, y)| x as usize == cx && y as usize == cy)
-        .is_some_and(|i| code >> (35 - i) & 1 == 1)
+    match BIT_OF_CELL.get(cy * 8 + cx) {
+        Some(&i) if i >= 0 => code >> (35 - i) & 1 == 1,
+        _ => false,
+    }
 }
+
+/// The code bit read at each cell of the 8×8 grid (`cy * 8 + cx`), −1 on the border:
+/// [`BIT_CELLS`] inverted, so the renderer's and the fit's per-sample lookups are O(1).
+static BIT_OF_CELL: [i8; 64] = {
+    let mut t = [-1i8; 64];
+    let mut i = 0;
+    while i < BIT_CELLS.len() {
+        let (x, y) = BIT_CELLS[i];
+        t[y as usize * 8 + x as usize] = i as i8;
+        i += 1;
+    }
+    t
+};
 
 /// Tag-local position of corner `k` (0..4, counter-clockwise from bottom-left) of a tag
 /// of side `s` whose bottom-left corner is the origin.

@@ -204,6 +204,7 @@ pub fn detect_tags(
     }
     let mut tags = Vec::new();
     let mut points = Vec::new();
+    let mut border = Vec::new();
     let mut emit = |target: &str, id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
         let c = &if opts.whole_tag_fit {
             whole_tag_corners(img, &f.refined.corners, lens, id, layout)
@@ -221,6 +222,15 @@ pub fn detect_tags(
             source: if f.predicted { "layout" } else { "quad" },
         });
         for (k, p) in c.iter().enumerate() {
+            if !measured_inside(img, p) {
+                border.push(Rejection {
+                    id,
+                    reason: format!(
+                        "tag {id} corner {k}: within {BORDER_MARGIN} px of the image border, where its sides cannot be measured"
+                    ),
+                });
+                continue;
+            }
             points.push(PointDetection {
                 point: format!("tag:{id}:{k}"),
                 u: p.x,
@@ -265,6 +275,7 @@ pub fn detect_tags(
     }
     // A candidate refused early and then found through the layout is not refused.
     rejected.retain(|r| !tags.iter().any(|t| t.id == r.id));
+    rejected.extend(border);
     for id in refined.keys() {
         rejected.push(Rejection {
             id: *id,
@@ -278,6 +289,22 @@ pub fn detect_tags(
         points,
         rejected,
     })
+}
+
+/// How far inside the image (px) a corner must lie to be reported: the edge measurement
+/// reads ±2.5 px across a side ([`refine`]), so closer to the border some of the pixels
+/// that would measure it are not in the image, and a corner completed from the layout or
+/// extrapolated from the sides may even lie outside it.
+pub const BORDER_MARGIN: f64 = 3.0;
+
+/// Is the corner at `p` measured by pixels inside the image?
+fn measured_inside(img: &Gray, p: &Vec2) -> bool {
+    p.x.is_finite()
+        && p.y.is_finite()
+        && p.x >= BORDER_MARGIN
+        && p.y >= BORDER_MARGIN
+        && p.x <= img.width as f64 - 1.0 - BORDER_MARGIN
+        && p.y <= img.height as f64 - 1.0 - BORDER_MARGIN
 }
 
 /// The corners a tag is reported with: a tag too small for the edge measurement's room

@@ -74,6 +74,26 @@ fn detectable(session: &Session) -> bool {
         })
 }
 
+/// Why the stage produced no session to calibrate.
+#[derive(Debug)]
+pub enum DetectionFailure {
+    Cancelled(Cancelled),
+    /// The detections did not make a valid session: a bug of this stage (it must only
+    /// emit what the session validation accepts), reported as such with the field the
+    /// validation refused, never replaced by the undetected session.
+    Inconsistent {
+        field: String,
+        expected: String,
+        report: DetectionReport,
+    },
+}
+
+impl From<Cancelled> for DetectionFailure {
+    fn from(c: Cancelled) -> Self {
+        DetectionFailure::Cancelled(c)
+    }
+}
+
 /// Detect what can be detected. Returns the session with observations filled in (or
 /// the original, when there was nothing to do) and the report (`None` when the session
 /// named no image needing detection).
@@ -81,7 +101,7 @@ pub fn detect_session(
     session: &Session,
     source: &dyn ImageSource,
     progress: &dyn Progress,
-) -> Result<(Session, Option<DetectionReport>), Cancelled> {
+) -> Result<(Session, Option<DetectionReport>), DetectionFailure> {
     let pending: Vec<(Option<usize>, ImageSlot)> = image_slots(session)
         .into_iter()
         .filter_map(|s| match s.frame_pos {
@@ -143,9 +163,12 @@ pub fn detect_session(
         }
     });
     if stop.load(Ordering::SeqCst) {
-        return Err(Cancelled("detection".into()));
+        return Err(Cancelled("detection".into()).into());
     }
-    let results = results.into_inner().unwrap_or_default();
+    // A worker that panicked poisons the lock: its image has no outcome and is reported
+    // as not detected below (the panic itself reaches the job's error through the
+    // worker's catch).
+    let results = results.into_inner().unwrap_or_else(|p| p.into_inner());
     let mut manifest = session.manifest.clone();
     let mut images = Vec::new();
     for ((fi, slot), r) in pending.iter().zip(results) {
@@ -183,10 +206,14 @@ pub fn detect_session(
         seconds: start.elapsed().as_secs_f64(),
         images,
     };
-    // The detections are ours, so the manifest still validates; if it somehow does not,
-    // calibrate the original and let the report say what was found.
-    let detected = from_manifest(manifest).unwrap_or_else(|_| session.clone());
-    Ok((detected, Some(report)))
+    match from_manifest(manifest) {
+        Ok(detected) => Ok((detected, Some(report))),
+        Err(e) => Err(DetectionFailure::Inconsistent {
+            field: e.field,
+            expected: e.expected,
+            report,
+        }),
+    }
 }
 
 /// Decode an image for detection, with the header-first checks of uploads (format,

@@ -202,7 +202,32 @@ pub fn run(
     opts: &CalibOptions,
     progress: &dyn Progress,
 ) -> Result<ResultDocument, Cancelled> {
-    let (detected, report) = detection::detect_session(session, images, progress)?;
+    let (detected, report) = match detection::detect_session(session, images, progress) {
+        Ok(d) => d,
+        Err(detection::DetectionFailure::Cancelled(c)) => return Err(c),
+        Err(detection::DetectionFailure::Inconsistent {
+            field,
+            expected,
+            report,
+        }) => {
+            let mut doc = failed(
+                session,
+                vec![reason(
+                    "internal_error",
+                    format!(
+                        "internal error in the detection stage: its detections do not make a valid session ({field}: expected {expected}); this is a bug of rigcal, not of the capture"
+                    ),
+                    None,
+                )],
+                vec![Stage {
+                    name: "detection".into(),
+                    seconds: report.seconds,
+                }],
+            );
+            doc.detection = Some(report);
+            return Ok(doc);
+        }
+    };
     let mut doc = calibrate_with(&detected, opts, progress)?;
     if let Some(r) = &report {
         doc.stages.insert(

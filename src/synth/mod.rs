@@ -25,9 +25,13 @@ pub const PRESETS: &[&str] = &[
     "wu-table2",
 ];
 
+pub mod hall;
 pub mod render;
 pub mod ring;
+pub mod scene;
 pub mod tagscene;
+
+use hall::about_centre;
 
 /// The ground truth written next to a synthetic session.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -56,7 +60,7 @@ struct Scenario {
 }
 
 /// Camera orientation looking along `dir` (vehicle frame, z up), pitched down by `pitch` rad.
-fn look(dir: Vec3, pitch: f64) -> nalgebra::Matrix3<f64> {
+pub(crate) fn look(dir: Vec3, pitch: f64) -> nalgebra::Matrix3<f64> {
     let z = dir.normalize();
     let x = z.cross(&Vec3::z()).normalize();
     let y = z.cross(&x);
@@ -130,7 +134,7 @@ fn far_pairs(points: &[(String, Vec3)], count: usize) -> Vec<(usize, usize)> {
     out
 }
 
-fn planar_pose(x: f64, y: f64, yaw_deg: f64) -> Pose {
+pub(crate) fn planar_pose(x: f64, y: f64, yaw_deg: f64) -> Pose {
     Pose::new(
         so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())),
         Vec3::new(x, y, 0.0),
@@ -230,14 +234,6 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
             })
             .collect()
     };
-    let about_centre = |p: &Pose, yaw_deg: f64| -> Pose {
-        let c = Vec3::new(0.5, 0.0, 0.0);
-        let turn = Pose::new(
-            so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())),
-            c - so3::exp(&Vec3::new(0.0, 0.0, yaw_deg.to_radians())) * c,
-        );
-        turn * *p
-    };
     let motion = match preset {
         "car-planar" => {
             poses = local(rng, 12);
@@ -320,7 +316,7 @@ fn car(preset: &str, rng: &mut ChaCha8Rng) -> Option<Scenario> {
 }
 
 /// A camera as a session manifest declares it.
-pub(crate) fn camera_spec(id: &str, c: &Camera) -> CameraSpec {
+pub fn camera_spec(id: &str, c: &Camera) -> CameraSpec {
     CameraSpec {
         id: id.into(),
         model: c.model.name().into(),

@@ -1,14 +1,15 @@
-//! Exact projective rendering of a printed planar target, so detector accuracy can be
-//! measured against truth known to ~1e-3 px.
+//! Exact projective rendering of printed planar targets and of whole scenes, so
+//! detector accuracy can be measured against truth known to ~1e-3 px.
 //!
-//! Every pixel is the average of sub-samples, each the shade of the board point its ray
-//! hits (ray through the camera model, including distortion, intersected with the board
-//! plane), placed as the pixel collects light: its own area `[u − ½, u + ½] × [v − ½,
-//! v + ½]` (the pixel-centre convention of architecture §3) blurred by the optics
-//! (Gaussian σ), see [`PixelResponse`]. Pixels near an edge are sampled again on a
-//! finer jittered grid. The rays are unprojected exactly at the pixel corners and
-//! interpolated bilinearly between them, where the map is affine to far below 1e-3 px.
-//! Then Gaussian noise (sensor) and rounding to 8 bits.
+//! The scene is a [`Field`]: the region of constant grey that the ray through an image
+//! point meets (ray through the camera model, including distortion). A pixel collects
+//! light as a camera's does: its own area `[u − ½, u + ½] × [v − ½, v + ½]` (the
+//! pixel-centre convention of architecture §3) blurred by the optics (Gaussian σ), see
+//! [`PixelResponse`]. Pixels that one region covers are exact from one sample; pixels an
+//! edge crosses are sampled on a fine jittered grid. The rays are unprojected exactly at
+//! the pixel corners and interpolated bilinearly between them, where the map is affine
+//! to far below 1e-3 px. Then photometry (gain, vignetting, offset), Gaussian sensor
+//! noise and rounding to 8 bits.
 
 use crate::geometry::{normal_cdf, Camera, Pose, Vec2, Vec3};
 use rand::SeedableRng;
@@ -17,8 +18,8 @@ use rand_distr::{Distribution, Normal};
 
 #[derive(Clone, Debug)]
 pub struct RenderOptions {
-    /// Sub-samples per pixel side.
-    pub supersample: usize,
+    /// Fine cells per side of a pixel an edge crosses (one jittered sample each).
+    pub edge_cells: usize,
     /// Gaussian blur σ in pixels (0: none).
     pub blur_sigma: f64,
     /// Gaussian noise σ in grey levels (0: none).
@@ -33,7 +34,7 @@ pub struct RenderOptions {
 impl Default for RenderOptions {
     fn default() -> Self {
         Self {
-            supersample: 6,
+            edge_cells: EDGE_SUPERSAMPLE,
             blur_sigma: 0.8,
             noise_sigma: 2.0,
             seed: 0,
@@ -54,6 +55,91 @@ pub fn render(
     shade: Shade,
     opts: &RenderOptions,
 ) -> image::GrayImage {
+    let rt = board_to_cam.rot.transpose();
+    let o = rt * board_to_cam.trans; // camera centre is at −o in board coordinates
+    let field = |_: Vec2, ray: Vec3| -> Hit {
+        let d = rt * ray;
+        let lambda = o.z / d.z;
+        let shade = if lambda.is_finite() && lambda > 0.0 {
+            let p = d * lambda - o;
+            shade(p.x, p.y)
+        } else {
+            None
+        };
+        match shade {
+            Some(true) => Hit {
+                class: 2,
+                grey: opts.white as f32,
+                exact: true,
+            },
+            Some(false) => Hit {
+                class: 1,
+                grey: opts.black as f32,
+                exact: true,
+            },
+            None => Hit {
+                class: 0,
+                grey: opts.background as f32,
+                exact: true,
+            },
+        }
+    };
+    let value = render_field(camera, &field, opts.blur_sigma, opts.edge_cells, opts.seed);
+    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
+    quantise(camera, &value, |_, x| x, opts.noise_sigma, &mut rng)
+}
+
+/// 8-bit pixels from grey levels: `photometry(pixel index, grey)` (gain, vignetting,
+/// offset: what happens before the sensor), then Gaussian sensor noise σ `noise_sigma`,
+/// rounded and clamped.
+pub fn quantise(
+    camera: &Camera,
+    value: &[f64],
+    photometry: impl Fn(usize, f64) -> f64,
+    noise_sigma: f64,
+    rng: &mut ChaCha8Rng,
+) -> image::GrayImage {
+    let noise = Normal::new(0.0, noise_sigma.max(0.0)).ok();
+    let pixels: Vec<u8> = value
+        .iter()
+        .enumerate()
+        .map(|(k, &x)| {
+            let e = noise.map_or(0.0, |d| d.sample(rng));
+            (photometry(k, x) + e).round().clamp(0.0, 255.0) as u8
+        })
+        .collect();
+    image::GrayImage::from_raw(camera.width, camera.height, pixels).expect("buffer is w × h")
+}
+
+/// What a ray meets: a region of constant grey. `class` names the region (a board's
+/// black, its white, one tile of a floor), so a pixel whose samples all meet one class
+/// is uniform and its grey is exact without sub-sampling. `exact`: the region's edges
+/// are measured (a print's), so pixels they cross get the fine grid; edges between
+/// other regions (clutter) get a coarse one.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Hit {
+    pub class: u64,
+    pub grey: f32,
+    pub exact: bool,
+}
+
+/// Cells per side of an edge pixel that only clutter crosses.
+const CLUTTER_CELLS: usize = 4;
+
+/// The scene as the camera sees it: the region met by the ray through image point
+/// `(x, y)`, whose camera-frame direction is `ray` (`z = 1`).
+pub type Field<'a> = &'a (dyn Fn(Vec2, Vec3) -> Hit + Sync);
+
+/// Render `field` through `camera`'s optics and pixels: grey levels before sensor
+/// noise, row-major. `edge_cells` fine cells per side sample a pixel an edge crosses
+/// (one jittered sample each); `seed` draws the jitter.
+pub fn render_field(
+    camera: &Camera,
+    field: Field,
+    blur_sigma: f64,
+    edge_cells: usize,
+    seed: u64,
+) -> Vec<f64> {
     let (w, h) = (camera.width as usize, camera.height as usize);
     // Normalised ray (x, y) at each pixel corner (u − ½, v − ½); NaN where the model
     // does not unproject.
@@ -65,11 +151,9 @@ pub fn render(
                 .map_or([f64::NAN; 2], |r| [r.x, r.y])
         })
         .collect();
-    let rt = board_to_cam.rot.transpose();
-    let o = rt * board_to_cam.trans; // camera centre is at −o in board coordinates
-                                     // The grey level at image point (x, y): the ray through it (bilinear in the corner
-                                     // grid, where the map is affine to far below 1e-3 px) hits the board.
-    let level = |x: f64, y: f64| -> f64 {
+    // The region met at image point (x, y): the ray through it (bilinear in the corner
+    // grid, where the map is affine to far below 1e-3 px).
+    let hit = |x: f64, y: f64| -> Hit {
         let (fi, fj) = ((x + 0.5).floor(), (y + 0.5).floor());
         let (i, j) = (
             (fi.max(0.0) as usize).min(w - 1),
@@ -82,59 +166,39 @@ pub fn render(
             (1.0 - fy) * ((1.0 - fx) * r00[q] + fx * r10[q])
                 + fy * ((1.0 - fx) * r01[q] + fx * r11[q])
         };
-        let d = rt * Vec3::new(mix(0), mix(1), 1.0);
-        let lambda = o.z / d.z;
-        let shade = if lambda.is_finite() && lambda > 0.0 {
-            let p = d * lambda - o;
-            shade(p.x, p.y)
-        } else {
-            None
-        };
-        match shade {
-            Some(true) => opts.white,
-            Some(false) => opts.black,
-            None => opts.background,
-        }
+        field(Vec2::new(x, y), Vec3::new(mix(0), mix(1), 1.0))
     };
-    // Pass 1: the shade on an (n + 1) × (n + 1) grid over each pixel, its border
-    // included (an edge along a pixel border, within 1/2n of it, must not be missed);
-    // `None` where it varies (an edge crosses the pixel).
-    let n = opts.supersample.max(1);
-    let inner: Vec<f64> = (0..=n).map(|a| a as f64 / n as f64 - 0.5).collect();
-    let flat: Vec<Option<f64>> = per_pixel(w, h, |u, v| {
-        let first = level(u as f64 + inner[0], v as f64 + inner[0]);
-        let uniform = inner.iter().all(|dy| {
-            inner
-                .iter()
-                .all(|dx| level(u as f64 + dx, v as f64 + dy) == first)
-        });
-        uniform.then_some(first)
+    // Pass 1: the region at every half-pixel point (pixel corners, side midpoints and
+    // centres, shared between neighbours). A pixel is uniform when its 9 points meet one
+    // region; it is an edge pixel when it or a 4-neighbour is not (a corner of a region
+    // can poke into a pixel between its points, but then it reaches a neighbour's).
+    let (sw, sh) = (2 * w + 1, 2 * h + 1);
+    let samples: Vec<Hit> = per_pixel(sw, sh, |i, j| {
+        hit(i as f64 / 2.0 - 0.5, j as f64 / 2.0 - 0.5)
     });
-    // Pass 2: pixels an edge crosses, on a fine grid of m × m cells, one jittered sample
-    // each. A regular grid would quantise an edge's position (a near-vertical edge in
-    // steps of 1/m px, the same on every row: a bias along the whole edge); jitter makes
-    // the error small and random.
-    let m = EDGE_SUPERSAMPLE.max(n);
-    let fine: Vec<Vec<f32>> = per_pixel(w, h, |u, v| {
-        if flat[v * w + u].is_some() {
-            return Vec::new();
-        }
-        let mut seed = ((v * w + u) as u64) ^ opts.seed.rotate_left(32);
-        let mut cells = Vec::with_capacity(m * m);
-        for b in 0..m {
-            for a in 0..m {
-                let dx = (a as f64 + unit(&mut seed)) / m as f64 - 0.5;
-                let dy = (b as f64 + unit(&mut seed)) / m as f64 - 0.5;
-                cells.push(level(u as f64 + dx, v as f64 + dy) as f32);
-            }
-        }
-        cells
+    let points = |u: usize, v: usize| {
+        (0..3).flat_map(move |b| (0..3).map(move |a| (2 * v + b) * sw + 2 * u + a))
+    };
+    let mixed: Vec<bool> = per_pixel(w, h, |u, v| {
+        let first = samples[2 * v * sw + 2 * u].class;
+        points(u, v).any(|k| samples[k].class != first)
     });
-    // Pass 3: each pixel collects light from its neighbours' areas through its response
-    // (separable): a flat neighbour at offset (i, j) contributes its level times the
-    // response's mass over its square, an edge pixel each fine cell times the mass over
-    // that cell.
-    let response = PixelResponse::new(opts.blur_sigma);
+    let edge: Vec<bool> = per_pixel(w, h, |u, v| {
+        let at = |i: usize, j: usize| mixed[j * w + i];
+        at(u, v)
+            || (u > 0 && at(u - 1, v))
+            || (u + 1 < w && at(u + 1, v))
+            || (v > 0 && at(u, v - 1))
+            || (v + 1 < h && at(u, v + 1))
+    });
+    let flat: Vec<f64> = per_pixel(w, h, |u, v| {
+        samples[(2 * v + 1) * sw + 2 * u + 1].grey as f64
+    });
+    // Pass 2: edge pixels on a grid of m × m cells (`edge_cells` where a print's edge
+    // crosses, a coarse one for clutter), one jittered sample each. A regular grid would
+    // quantise an edge's position (a near-vertical edge in steps of 1/m px, the same on
+    // every row: a bias along the whole edge); jitter makes the error small and random.
+    let response = PixelResponse::new(blur_sigma);
     let reach = response.reach();
     let span = 2 * reach + 1;
     let per_px: Vec<f64> = (0..span)
@@ -143,57 +207,87 @@ pub fn render(
             response.mass(d - 0.5, d + 0.5)
         })
         .collect();
-    let per_cell: Vec<f64> = (0..span * m)
-        .map(|k| {
-            let lo = (k / m) as f64 - reach as f64 - 0.5 + (k % m) as f64 / m as f64;
-            response.mass(lo, lo + 1.0 / m as f64)
-        })
-        .collect();
+    let cell_mass = |m: usize| -> Vec<f64> {
+        (0..span * m)
+            .map(|k| {
+                let lo = (k / m) as f64 - reach as f64 - 0.5 + (k % m) as f64 / m as f64;
+                response.mass(lo, lo + 1.0 / m as f64)
+            })
+            .collect()
+    };
+    let (fine_m, clutter_m) = (edge_cells.max(2), CLUTTER_CELLS.min(edge_cells.max(2)));
+    let (fine_mass, clutter_mass) = (cell_mass(fine_m), cell_mass(clutter_m));
+    // Each edge pixel's light as received at every offset of the response's reach
+    // (`span × span`, separable: rows of cells weighted across, then down), so the
+    // pixels around it gather it with one lookup.
+    let spread: Vec<Vec<f32>> = per_pixel(w, h, |u, v| {
+        if !edge[v * w + u] {
+            return Vec::new();
+        }
+        let exact = points(u, v).any(|k| samples[k].exact);
+        let (m, per_cell) = if exact {
+            (fine_m, &fine_mass)
+        } else {
+            (clutter_m, &clutter_mass)
+        };
+        let mut state = ((v * w + u) as u64) ^ seed.rotate_left(32);
+        let mut cells = Vec::with_capacity(m * m);
+        for b in 0..m {
+            for a in 0..m {
+                let dx = (a as f64 + unit(&mut state)) / m as f64 - 0.5;
+                let dy = (b as f64 + unit(&mut state)) / m as f64 - 0.5;
+                cells.push(hit(u as f64 + dx, v as f64 + dy).grey as f64);
+            }
+        }
+        let mut across = vec![0.0; m * span];
+        for b in 0..m {
+            let row = &cells[b * m..(b + 1) * m];
+            for di in 0..span {
+                let wx = &per_cell[di * m..(di + 1) * m];
+                across[b * span + di] = row.iter().zip(wx).map(|(c, w)| c * w).sum();
+            }
+        }
+        let mut out = vec![0.0f32; span * span];
+        for dj in 0..span {
+            for di in 0..span {
+                out[dj * span + di] = (0..m)
+                    .map(|b| per_cell[dj * m + b] * across[b * span + di])
+                    .sum::<f64>() as f32;
+            }
+        }
+        out
+    });
+    // Pass 3: each pixel collects light from its neighbours' areas through its response:
+    // a flat neighbour at offset (i, j) contributes its level times the response's mass
+    // over its square, an edge pixel its spread at that offset.
     let total = per_px.iter().sum::<f64>().powi(2);
-    // Pixels within `reach` of an edge pixel (a separable dilation, once).
     let rows_near: Vec<bool> = per_pixel(w, h, |u, v| {
-        (u.saturating_sub(reach)..=(u + reach).min(w - 1)).any(|i| flat[v * w + i].is_none())
+        (u.saturating_sub(reach)..=(u + reach).min(w - 1)).any(|i| edge[v * w + i])
     });
     let edge_near: Vec<bool> = per_pixel(w, h, |u, v| {
         (v.saturating_sub(reach)..=(v + reach).min(h - 1)).any(|j| rows_near[j * w + u])
     });
-    let value: Vec<f64> = per_pixel(w, h, |u, v| {
+    per_pixel(w, h, |u, v| {
         let (i0, j0) = (u as isize - reach as isize, v as isize - reach as isize);
-        if let (Some(g), false) = (flat[v * w + u], edge_near[v * w + u]) {
-            return g;
+        if !edge_near[v * w + u] {
+            return flat[v * w + u];
         }
         let mut acc = 0.0;
         for dj in 0..span {
+            // Outside the image: the nearest border pixel (clamped).
+            let j = (j0 + dj as isize).clamp(0, h as isize - 1) as usize;
             for di in 0..span {
-                // Outside the image: the nearest border pixel (clamped).
                 let i = (i0 + di as isize).clamp(0, w as isize - 1) as usize;
-                let j = (j0 + dj as isize).clamp(0, h as isize - 1) as usize;
-                match flat[j * w + i] {
-                    Some(g) => acc += g * per_px[di] * per_px[dj],
-                    None => {
-                        let cells = &fine[j * w + i];
-                        for b in 0..m {
-                            let wy = per_cell[dj * m + b];
-                            for a in 0..m {
-                                acc += cells[b * m + a] as f64 * per_cell[di * m + a] * wy;
-                            }
-                        }
-                    }
-                }
+                let k = j * w + i;
+                acc += if edge[k] {
+                    spread[k][dj * span + di] as f64
+                } else {
+                    flat[k] * per_px[di] * per_px[dj]
+                };
             }
         }
         acc / total
-    });
-    let mut rng = ChaCha8Rng::seed_from_u64(opts.seed);
-    let noise = Normal::new(0.0, opts.noise_sigma.max(0.0)).ok();
-    let pixels: Vec<u8> = value
-        .iter()
-        .map(|&x| {
-            let e = noise.map_or(0.0, |d| d.sample(&mut rng));
-            (x + e).round().clamp(0.0, 255.0) as u8
-        })
-        .collect();
-    image::GrayImage::from_raw(w as u32, h as u32, pixels).expect("buffer is w × h")
+    })
 }
 
 /// Fine cells per side of a pixel an edge crosses (one jittered sample each: the error
@@ -293,7 +387,6 @@ mod tests {
         // Board plane facing the camera at 1 m: board x maps to u = 100·x + 10.
         let pose = Pose::new(nalgebra::Matrix3::identity(), Vec3::new(0.0, 0.0, 1.0));
         let opts = RenderOptions {
-            supersample: 16,
             blur_sigma: 0.0,
             noise_sigma: 0.0,
             black: 0.0,
