@@ -11,7 +11,7 @@ fn main() {
         std::process::exit(2);
     }
     let seed = a.get(5).and_then(|s| s.parse().ok()).unwrap_or(1);
-    let h = hall(&a[1], seed, None).expect("a hall preset");
+    let h = hall(&a[1], seed, None).unwrap_or_else(|e| panic!("{e}"));
     let frame: usize = a[2].parse().expect("frame");
     let cam = h
         .cameras

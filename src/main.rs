@@ -93,6 +93,9 @@ enum Command {
         /// Write PNG instead of JPEG (q 92).
         #[arg(long)]
         png: bool,
+        /// Hall presets: AprilGrids only, no tags scattered on the walls.
+        #[arg(long)]
+        boards_only: bool,
         /// Output directory.
         #[arg(long, default_value = ".")]
         out: PathBuf,
@@ -414,6 +417,7 @@ fn run() -> Result<i32> {
             size,
             grey_noise,
             png,
+            boards_only,
         } => {
             if !(noise.is_finite() && noise >= 0.0) {
                 return Err(anyhow!("--noise: a non-negative pixel σ, got {noise}"));
@@ -424,8 +428,11 @@ fn run() -> Result<i32> {
                         "--grey-noise: a non-negative σ in grey levels, got {grey_noise}"
                     ));
                 }
-                let hall = rigcal::synth::hall::hall(&preset, seed, size)
-                    .ok_or_else(|| anyhow!("--size: 64x64 to 8192x8192"))?;
+                let mut hall =
+                    rigcal::synth::hall::hall(&preset, seed, size).map_err(|e| anyhow!(e))?;
+                if boards_only {
+                    hall = hall.boards_only();
+                }
                 let nuisance = rigcal::synth::hall::Nuisance {
                     noise: grey_noise,
                     jpeg_quality: (!png).then_some(92),
@@ -446,9 +453,9 @@ fn run() -> Result<i32> {
                 );
                 return Ok(0);
             }
-            if images || size.is_some() {
+            if images || size.is_some() || boards_only {
                 return Err(anyhow!(
-                    "--images/--size: only for the hall presets ({})",
+                    "--images/--size/--boards-only: only for the hall presets ({})",
                     rigcal::synth::hall::PRESETS.join(", ")
                 ));
             }

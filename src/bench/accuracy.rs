@@ -6,7 +6,7 @@
 use crate::geometry::{so3, Pose, Vec3};
 use crate::pipeline::{calibrate, CalibOptions};
 use crate::result::{ExtrinsicValue, ResultDocument, Status};
-use crate::session::{parse_session, Session};
+use crate::session::{parse_session, PointKind, Session};
 use crate::solver::bundle::{BundleProblem, DistanceConstraint, Obs, PointRef};
 use crate::solver::Loss;
 use crate::synth::{generate, Truth};
@@ -32,7 +32,7 @@ pub struct AccuracyRow {
 }
 
 /// Error `[dt; dφ]` of `est` against `truth` in the parametrisation of the covariance.
-pub(crate) fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
+pub fn error6(est: &Pose, truth: &Pose) -> SVector<f64, 6> {
     let dt = est.trans - truth.trans;
     let dphi = so3::log(&(est.rot * truth.rot.transpose()));
     SVector::<f64, 6>::from_iterator(dt.iter().chain(dphi.iter()).copied())
@@ -111,13 +111,26 @@ fn truth_information(
     let world_from_ref0 = truth.world_from_rig[0];
     // Express the truth in the estimator's gauge: world = reference camera at frame 0.
     let to_gauge = world_from_ref0.inverse();
-    let mut point_index = HashMap::new();
+    // Free points at their true position; rigid bodies (boards, tags) at the pose that
+    // carries their known corners onto the true ones.
+    let mut refs = Vec::with_capacity(session.points.ids.len());
     let mut points = Vec::new();
+    let mut body_pairs: Vec<Vec<(Vec3, Vec3)>> = vec![Vec::new(); session.points.bodies.len()];
     for (p, id) in session.points.ids.iter().enumerate() {
         let x = truth.points.get(id)?;
-        point_index.insert(p, points.len());
-        points.push(to_gauge.apply(&Vec3::new(x[0], x[1], x[2])));
+        let world = to_gauge.apply(&Vec3::new(x[0], x[1], x[2]));
+        refs.push(match session.points.kinds[p] {
+            PointKind::Body { body, local } => {
+                body_pairs[body].push((local, world));
+                PointRef::Body { body, local }
+            }
+            PointKind::Free => {
+                points.push(world);
+                PointRef::Free(points.len() - 1)
+            }
+        });
     }
+    let world_from_body: Vec<Pose> = body_pairs.iter().map(|p| fit_rigid(p)).collect();
     let mut observations = Vec::new();
     for (k, f) in session.frames.iter().enumerate() {
         for (c, obs) in f.observations.iter().enumerate() {
@@ -125,7 +138,7 @@ fn truth_information(
                 observations.push(Obs {
                     rig: k,
                     cam: c,
-                    point: PointRef::Free(point_index[&o.point]),
+                    point: refs[o.point],
                     uv: o.uv,
                 });
             }
@@ -138,15 +151,15 @@ fn truth_information(
         world_from_rig: truth.world_from_rig.iter().map(|w| to_gauge * *w).collect(),
         rig_fixed: (0..truth.world_from_rig.len()).map(|k| k == 0).collect(),
         points,
-        world_from_body: vec![],
-        body_fixed: vec![],
+        body_fixed: vec![false; world_from_body.len()],
+        world_from_body,
         observations,
         distances: session
             .distances
             .iter()
             .map(|d| DistanceConstraint {
-                a: PointRef::Free(point_index[&d.a]),
-                b: PointRef::Free(point_index[&d.b]),
+                a: refs[d.a],
+                b: refs[d.b],
                 distance: d.distance,
                 sigma: d.sigma,
             })
@@ -155,6 +168,27 @@ fn truth_information(
         pixel_sigma: sigma,
     };
     problem.extrinsic_information(&Loss::Squared)
+}
+
+/// The rigid motion taking the `(local, world)` pairs' local points onto their world
+/// points (Kabsch: SVD of the cross-covariance, reflection excluded).
+fn fit_rigid(pairs: &[(Vec3, Vec3)]) -> Pose {
+    if pairs.is_empty() {
+        return Pose::identity();
+    }
+    let n = pairs.len() as f64;
+    let cl = pairs.iter().map(|p| p.0).sum::<Vec3>() / n;
+    let cw = pairs.iter().map(|p| p.1).sum::<Vec3>() / n;
+    let h = pairs.iter().fold(nalgebra::Matrix3::zeros(), |h, (l, w)| {
+        h + (w - cw) * (l - cl).transpose()
+    });
+    let svd = h.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        return Pose::identity();
+    };
+    let d = (u * vt).determinant().signum();
+    let rot = u * nalgebra::Matrix3::from_diagonal(&Vec3::new(1.0, 1.0, d)) * vt;
+    Pose::new(rot, cw - rot * cl)
 }
 
 /// Run `trials` noisy trials per noise level; errors pooled over the non-reference cameras.

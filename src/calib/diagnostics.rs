@@ -3,10 +3,15 @@
 //! residual statistics. Observability is computed from the information matrix of the
 //! actual problem, not read off Table 1 of the paper.
 
+use super::handeye::InitOutput;
+use super::motion::MotionClass;
 use super::rig_ba::RigBaOutput;
+use super::trajectory::Trajectories;
+use crate::geometry::Vec3;
 use crate::result::*;
 use crate::session::Session;
 use nalgebra::{DMatrix, DVector};
+use std::collections::{BTreeMap, BTreeSet};
 
 /// A direction is unobservable when its 1-σ (at ≥ 0.1 px noise) exceeds this many
 /// metres (translation) or radians (rotation), or its eigenvalue is numerically zero.
@@ -33,11 +38,98 @@ pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<
         .collect()
 }
 
+/// Directions that planar motion leaves undetermined whatever the noise. The rig turns
+/// only about the plane normal `n`, so a camera moved along `n` (rig frame) sees its
+/// scene displaced by the same world vector at every pose, which displacing that scene
+/// undoes; only a scene shared with a camera that stays put ties the height. So: one
+/// direction per group of cameras linked by shared scenes, the reference's group
+/// excepted — all of the group's cameras along `n`. Unit vectors in the joint space of
+/// the free cameras `cams` (6 per camera: translation, then rotation); empty unless the
+/// motion is planar.
+///
+/// The numerical information cannot be trusted to find these at the initialisation:
+/// there the rig's rotation axes scatter by the trajectories' noise, which makes each
+/// height look determined to centimetres by thousands of corners, while the data hold
+/// no information on it at all.
+pub fn planar_height_directions(
+    traj: &Trajectories,
+    init: &InitOutput,
+    reference: usize,
+    cams: &[usize],
+) -> Vec<DVector<f64>> {
+    if init.motion.class != MotionClass::Planar {
+        return vec![];
+    }
+    let n = Vec3::from(init.motion.axis).normalize();
+    let nc = init.ref_from_cam.len();
+    let mut group: Vec<usize> = (0..nc).collect();
+    fn root(g: &mut [usize], mut i: usize) -> usize {
+        while g[i] != i {
+            g[i] = g[g[i]];
+            i = g[i];
+        }
+        i
+    }
+    for scene in &traj.scenes {
+        let seen: BTreeSet<usize> = scene.poses.keys().map(|&(_, c)| c).collect();
+        let mut it = seen.into_iter();
+        if let Some(first) = it.next() {
+            for c in it {
+                let (a, b) = (root(&mut group, first), root(&mut group, c));
+                group[a] = b;
+            }
+        }
+    }
+    let fixed = root(&mut group, reference);
+    let mut by_group: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for (i, &c) in cams.iter().enumerate() {
+        let g = root(&mut group, c);
+        if g != fixed {
+            by_group.entry(g).or_default().push(i);
+        }
+    }
+    by_group
+        .into_values()
+        .map(|members| {
+            let mut v = DVector::zeros(6 * cams.len());
+            for i in members {
+                v.fixed_rows_mut::<3>(6 * i).copy_from(&n);
+            }
+            v.normalize()
+        })
+        .collect()
+}
+
+/// `dirs` made orthogonal to the unit vectors `against` and to each other (those left
+/// with less than half their length are dropped), each kept with its tag.
+pub fn orthogonalised<T>(
+    against: &[DVector<f64>],
+    dirs: impl IntoIterator<Item = (DVector<f64>, T)>,
+) -> Vec<(DVector<f64>, T)> {
+    let mut basis: Vec<DVector<f64>> = against.to_vec();
+    let mut out = Vec::new();
+    for (v, tag) in dirs {
+        let mut u = v;
+        for b in &basis {
+            let d = b.dot(&u);
+            u -= b * d;
+        }
+        if u.norm() > 0.5 {
+            let u = u.normalize();
+            basis.push(u.clone());
+            out.push((u, tag));
+        }
+    }
+    out
+}
+
 pub struct Observability {
     /// Per free camera (index into session cameras): covariance 6×6 (m, rad) with nulls removed.
     pub cov: Vec<(usize, DMatrix<f64>)>,
-    /// Unit null directions in the joint space of the free cameras.
+    /// Unit null directions in the joint space of the free cameras: first the planar
+    /// heights ([`planar_height_directions`], `held` of them), then the others.
     pub null: Vec<(DVector<f64>, Option<f64>)>,
+    pub held: usize,
     pub cams: Vec<usize>,
     pub per_camera_eigen: Vec<Vec<f64>>,
 }
@@ -46,7 +138,13 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
     let (cams, info) = ba.information.clone()?;
     let n = info.nrows();
     let sym = (&info + info.transpose()) * 0.5;
-    let eig = crate::solver::eigen::symmetric_eigen(&sym);
+    // The planar heights carry no information whatever the numbers say: taken out of
+    // the information, so the covariance excludes them and they lead the null list.
+    let held = &ba.held_directions;
+    let keep = held
+        .iter()
+        .fold(DMatrix::identity(n, n), |p, s| p - s * s.transpose());
+    let eig = crate::solver::eigen::symmetric_eigen(&(&keep * &sym * &keep));
     let lmax = eig.eigenvalues.amax().max(1e-300);
     let sigma = if ba.sigma_px.is_finite() {
         ba.sigma_px
@@ -83,9 +181,13 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
             e
         })
         .collect();
+    let mut all: Vec<(DVector<f64>, Option<f64>)> =
+        held.iter().map(|s| (s.clone(), None)).collect();
+    all.extend(orthogonalised(held, null));
     Some(Observability {
         cov: per_cov,
-        null,
+        null: all,
+        held: held.len(),
         cams,
         per_camera_eigen,
     })

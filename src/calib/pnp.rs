@@ -38,16 +38,105 @@ pub fn principal_axes(pts: &[Vec3]) -> (Vec3, Mat3, Vec3) {
 
 /// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
 pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
+    solve_pose(camera, local, uv).map(|f| f.pose)
+}
+
+/// A pose and whether the data single it out.
+#[derive(Clone, Copy, Debug)]
+pub struct PoseFit {
+    pub pose: Pose,
+    /// Sum of squared reprojection errors (px²).
+    pub cost: f64,
+    /// Another pose, rotated more than [`DISTINCT_DEG`] from this one, explains the
+    /// points nearly as well (see [`ambiguous`]).
+    pub ambiguous: bool,
+}
+
+/// Poses closer than this (deg) are one solution reached twice.
+pub const DISTINCT_DEG: f64 = 1.0;
+
+/// A plane seen small, far away or nearly head-on has two poses of almost the same
+/// reprojection error: the true one and its mirror about the line of sight (the two
+/// minima that IPPE finds). Noise of a few hundredths of a pixel decides between them
+/// on a 20 px tag, and the wrong one is tilted by twice the angle between the normal and
+/// the line of sight — a "motion" of tens of degrees that never happened. So the mirror
+/// is refined too and compared: the fit is ambiguous when it is not worse by a clear
+/// margin (`Δχ² < 16`, with σ² from the best fit's own residual, at least 0.1 px).
+pub fn ambiguous(best: f64, second: f64, observations: usize) -> bool {
+    let dof = (2 * observations).saturating_sub(6).max(1) as f64;
+    let sigma2 = (best / dof).max(MIN_AMBIGUITY_SIGMA_PX * MIN_AMBIGUITY_SIGMA_PX);
+    second - best < 16.0 * sigma2
+}
+
+const MIN_AMBIGUITY_SIGMA_PX: f64 = 0.5;
+
+/// [`estimate_pose`] with both planar solutions refined: the better one, its cost, and
+/// whether the other is nearly as good. A non-planar point set has one solution.
+pub fn solve_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<PoseFit> {
     let xy: Vec<Vec2> = uv
         .iter()
         .map(|p| camera.unproject(p))
         .collect::<Option<_>>()?;
-    let init = if is_planar(local) {
-        planar_pose(local, &xy)?
+    if !is_planar(local) {
+        let pose = refine_pose(camera, local, uv, dlt_pose(local, &xy)?);
+        return Some(PoseFit {
+            pose,
+            cost: reprojection_cost(camera, local, uv, &pose),
+            ambiguous: false,
+        });
+    }
+    let first = refine_pose(camera, local, uv, planar_pose(local, &xy)?);
+    let second = refine_pose(camera, local, uv, mirrored(&first, local));
+    let fits = [first, second].map(|p| (reprojection_cost(camera, local, uv, &p), p));
+    let (best, other) = if fits[0].0 <= fits[1].0 {
+        (fits[0], fits[1])
     } else {
-        dlt_pose(local, &xy)?
+        (fits[1], fits[0])
     };
-    Some(refine_pose(camera, local, uv, init))
+    let distinct = so3::angle_between(&best.1.rot, &other.1.rot).to_degrees() > DISTINCT_DEG;
+    Some(PoseFit {
+        pose: best.1,
+        cost: best.0,
+        ambiguous: distinct && ambiguous(best.0, other.0, local.len()),
+    })
+}
+
+/// The other planar solution: the plane's normal reflected about the line of sight to
+/// its centroid, the centroid kept.
+pub fn mirrored(cam_from_local: &Pose, local: &[Vec3]) -> Pose {
+    let (centroid, axes, _) = principal_axes(local);
+    let n = cam_from_local.rot * axes.column(2);
+    let c = cam_from_local.apply(&centroid);
+    let v = c.normalize();
+    let n2 = v * (2.0 * n.dot(&v)) - n;
+    let axis = n.cross(&n2);
+    let s = axis.norm();
+    let turn = if s < 1e-12 {
+        Mat3::identity()
+    } else {
+        so3::exp(&(axis / s * s.atan2(n.dot(&n2))))
+    };
+    let rot = turn * cam_from_local.rot;
+    Pose::new(rot, c - rot * centroid)
+}
+
+/// Sum of squared pixel reprojection errors of `cam_from_local` (a point that does not
+/// project counts 1e12).
+pub fn reprojection_cost(
+    camera: &Camera,
+    local: &[Vec3],
+    uv: &[Vec2],
+    cam_from_local: &Pose,
+) -> f64 {
+    local
+        .iter()
+        .zip(uv)
+        .map(|(x, m)| {
+            camera
+                .project(&cam_from_local.apply(x))
+                .map_or(1e12, |p| (p - m).norm_squared())
+        })
+        .sum()
 }
 
 /// Homography between the points' plane and the normalised image, decomposed.
@@ -159,17 +248,7 @@ fn dlt_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
 
 /// Gauss–Newton with Levenberg damping on the pixel reprojection error.
 pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> Pose {
-    let cost = |pose: &Pose| -> f64 {
-        local
-            .iter()
-            .zip(uv)
-            .map(|(x, m)| {
-                camera
-                    .project(&pose.apply(x))
-                    .map_or(1e12, |p| (p - m).norm_squared())
-            })
-            .sum()
-    };
+    let cost = |pose: &Pose| reprojection_cost(camera, local, uv, pose);
     let mut pose = init;
     let mut c = cost(&pose);
     let mut lambda = 1e-3;

@@ -16,7 +16,7 @@ use crate::solver::bundle::{
     BundleProblem, BundleSummary, DirectionPrior, DistanceConstraint, LmOptions, Obs,
 };
 use crate::solver::{robust_sigma, Loss};
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DVector};
 use std::collections::HashMap;
 
 #[derive(Clone, Debug)]
@@ -60,20 +60,35 @@ pub struct RigBaOutput {
     pub information: Option<(Vec<usize>, DMatrix<f64>)>,
     /// Frame index (position in `session.frames`) of every rig pose.
     pub rig_frames: Vec<usize>,
+    /// The planar heights held at the initialisation (unit vectors over the free cameras
+    /// of `information`).
+    pub held_directions: Vec<DVector<f64>>,
 }
 
 /// 1-σ (m or rad) of the priors holding undeterminable directions at the initial value:
 /// tight, because along such a direction the data carry no information at all.
 pub const HOLD_PRIOR_SIGMA: f64 = 1e-4;
 
-/// Priors holding every direction of the extrinsics that the information at the
-/// initialisation leaves undetermined (see [`crate::calib::diagnostics`]).
-fn hold_priors(problem: &BundleProblem, decision_sigma_px: f64) -> Vec<DirectionPrior> {
+/// Priors holding every direction of the extrinsics that the data leave undetermined:
+/// the planar heights of the motion class, and what the information at the
+/// initialisation does not determine (see [`crate::calib::diagnostics`]). Returns the
+/// priors and the held planar heights (unit vectors over the free cameras).
+fn hold_priors(
+    problem: &BundleProblem,
+    decision_sigma_px: f64,
+    heights: impl FnOnce(&[usize]) -> Vec<DVector<f64>>,
+) -> (Vec<DirectionPrior>, Vec<DVector<f64>>) {
     let Some((cams, info)) = problem.extrinsic_information(&Loss::Squared) else {
-        return vec![];
+        return (vec![], vec![]);
     };
-    let null = crate::calib::diagnostics::null_directions(&info, decision_sigma_px);
-    null.into_iter()
+    let held = heights(&cams);
+    let numerical = crate::calib::diagnostics::null_directions(&info, decision_sigma_px);
+    let others =
+        crate::calib::diagnostics::orthogonalised(&held, numerical.into_iter().map(|v| (v, ())));
+    let priors = held
+        .iter()
+        .cloned()
+        .chain(others.into_iter().map(|(v, _)| v))
         .map(|v| {
             let terms: Vec<(usize, nalgebra::Vector6<f64>)> = cams
                 .iter()
@@ -96,7 +111,8 @@ fn hold_priors(problem: &BundleProblem, decision_sigma_px: f64) -> Vec<Direction
                 sigma: HOLD_PRIOR_SIGMA,
             }
         })
-        .collect()
+        .collect();
+    (priors, held)
 }
 
 pub fn refine(
@@ -193,7 +209,10 @@ pub fn refine(
     // Hold what the data cannot determine, judged at the noise level the per-scene
     // adjustments saw.
     let decision_sigma = traj.median_scene_sigma().unwrap_or(1.0);
-    problem.priors = hold_priors(&problem, decision_sigma);
+    let (priors, held_directions) = hold_priors(&problem, decision_sigma, |cams| {
+        crate::calib::diagnostics::planar_height_directions(traj, init, session.reference, cams)
+    });
+    problem.priors = priors;
 
     let lm = |loss| LmOptions {
         max_iterations: opts.max_iterations,
@@ -255,5 +274,6 @@ pub fn refine(
         sigma_px,
         information,
         rig_frames,
+        held_directions,
     }
 }

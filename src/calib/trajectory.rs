@@ -15,7 +15,7 @@ use crate::geometry::{Pose, Vec2, Vec3};
 use crate::session::{PointKind, Session};
 use crate::solver::bundle::{BundleProblem, DistanceConstraint, LmOptions, Obs};
 use crate::solver::{median, robust_sigma};
-use std::collections::{BTreeMap, HashMap};
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 
 /// An image: (frame position in `session.frames`, camera index).
 pub type ImageKey = (usize, usize);
@@ -178,7 +178,8 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 // MAX_SPLITS times.
                 let origin = part_of.unwrap_or(s);
                 let n_splits = splits.entry(origin).or_insert(0usize);
-                if !r.points.is_empty() && *n_splits < MAX_SPLITS {
+                let built = !r.points.is_empty() || (!r.bodies.is_empty() && !r.poses.is_empty());
+                if built && *n_splits < MAX_SPLITS {
                     if let Some(rest) =
                         split_rest(session, &mut scene_of_point, s, &r, scenes.len())
                     {
@@ -253,8 +254,11 @@ fn scale_from_shared_motion<'a>(
 /// How many times one scene's chain may be split into a further scene.
 const MAX_SPLITS: usize = 3;
 
-/// Free points of scene `s` that its reconstruction `r` left out, relabelled as scene
-/// `next` if there are enough of them, seen by enough images, for a two-view start.
+/// Points of scene `s` that its reconstruction `r` left out (free points not
+/// triangulated, bodies not placed), relabelled as scene `next` if enough images see
+/// them to start one: two images of 8 free points (a two-view start), or one image of 4
+/// points of an unplaced body. Bodies stay out when only ambiguous poses would link
+/// them ([`place_body`]); their own scene then gives their cameras' trajectories.
 fn split_rest(
     session: &Session,
     scene_of_point: &mut [Option<usize>],
@@ -263,21 +267,25 @@ fn split_rest(
     next: usize,
 ) -> Option<usize> {
     let kinds = &session.points.kinds;
+    let left_out = |p: usize| match kinds[p] {
+        PointKind::Free => !r.points.contains_key(&p),
+        PointKind::Body { body, .. } => !r.bodies.contains_key(&body),
+    };
     let rest: Vec<usize> = (0..scene_of_point.len())
-        .filter(|&p| {
-            scene_of_point[p] == Some(s)
-                && kinds[p] == PointKind::Free
-                && !r.points.contains_key(&p)
-        })
+        .filter(|&p| scene_of_point[p] == Some(s) && left_out(p))
         .collect();
     let is_rest: std::collections::HashSet<usize> = rest.iter().copied().collect();
-    let images_seeing_enough = session
-        .frames
-        .iter()
-        .flat_map(|f| f.observations.iter())
-        .filter(|obs| obs.iter().filter(|o| is_rest.contains(&o.point)).count() >= 8)
-        .count();
-    if images_seeing_enough < 2 {
+    let (mut free_images, mut body_images) = (0, 0);
+    for obs in session.frames.iter().flat_map(|f| f.observations.iter()) {
+        let seen = obs.iter().filter(|o| is_rest.contains(&o.point));
+        let (free, body) = seen.fold((0, 0), |(f, b), o| match kinds[o.point] {
+            PointKind::Free => (f + 1, b),
+            PointKind::Body { .. } => (f, b + 1),
+        });
+        free_images += (free >= 8) as usize;
+        body_images += (body >= 4) as usize;
+    }
+    if free_images < 2 && body_images < 1 {
         return None;
     }
     for p in rest {
@@ -342,47 +350,44 @@ fn reconstruct_scene(
         bodies.insert(anchor, Pose::identity());
         loop {
             let mut progress = false;
+            // Pose the images from every placed body they see (not where the placed
+            // bodies they see are one plane that two poses explain).
             for (&key, obs) in &images {
-                // Pose the image from every placed body it sees.
-                if !poses.contains_key(&key) {
-                    let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
-                        .iter()
-                        .filter_map(|(p, uv)| match kinds[*p] {
-                            PointKind::Body { body, local } => {
-                                bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
-                            }
-                            PointKind::Free => None,
-                        })
-                        .unzip();
-                    if local.len() >= 4 && (pnp::is_planar(&local) || local.len() >= 6) {
-                        if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
-                            poses.insert(key, p);
+                if poses.contains_key(&key) {
+                    continue;
+                }
+                let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
+                    .iter()
+                    .filter_map(|(p, uv)| match kinds[*p] {
+                        PointKind::Body { body, local } => {
+                            bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
+                        }
+                        PointKind::Free => None,
+                    })
+                    .unzip();
+                if local.len() >= 4 && (pnp::is_planar(&local) || local.len() >= 6) {
+                    if let Some(fit) = pnp::solve_pose(&cams[key.1], &local, &uv) {
+                        if !fit.ambiguous {
+                            poses.insert(key, fit.pose);
                             progress = true;
                         }
                     }
                 }
-                // Place the bodies this posed image sees but that are not placed yet.
-                if let Some(cam_from_scene) = poses.get(&key).copied() {
-                    let mut per_body: BTreeMap<usize, (Vec<Vec3>, Vec<Vec2>)> = BTreeMap::new();
-                    for (p, uv) in obs {
-                        if let PointKind::Body { body, local } = kinds[*p] {
-                            if !bodies.contains_key(&body) {
-                                let e = per_body.entry(body).or_default();
-                                e.0.push(local);
-                                e.1.push(*uv);
-                            }
-                        }
-                    }
-                    for (body, (local, uv)) in per_body {
-                        if local.len() >= 4 {
-                            if let Some(cam_from_body) =
-                                pnp::estimate_pose(&cams[key.1], &local, &uv)
-                            {
-                                bodies.insert(body, cam_from_scene.inverse() * cam_from_body);
-                                progress = true;
-                            }
-                        }
-                    }
+            }
+            // Place the bodies the posed images see, each from all of them at once.
+            let unplaced: BTreeSet<usize> = images
+                .iter()
+                .filter(|(k, _)| poses.contains_key(k))
+                .flat_map(|(_, obs)| obs.iter())
+                .filter_map(|(p, _)| match kinds[*p] {
+                    PointKind::Body { body, .. } if !bodies.contains_key(&body) => Some(body),
+                    _ => None,
+                })
+                .collect();
+            for body in unplaced {
+                if let Some(scene_from_body) = place_body(body, &images, &poses, kinds, &cams) {
+                    bodies.insert(body, scene_from_body);
+                    progress = true;
                 }
             }
             if !progress {
@@ -471,6 +476,72 @@ fn reconstruct_scene(
     })
 }
 
+/// Where `body` sits in the scene (`scene_from_body`), from every posed image that sees
+/// at least 4 of its points: each image's pose of the body, and for a planar body its
+/// mirror too ([`pnp::mirrored`]), is a candidate, judged by its reprojection error over
+/// all those images together. `None` while that leaves two poses ([`pnp::ambiguous`]): a
+/// small tag seen from one place only. A flipped body would pose every image that sees
+/// it alone wrongly, and those poses would become motions that never happened.
+fn place_body(
+    body: usize,
+    images: &BTreeMap<ImageKey, Vec<(usize, Vec2)>>,
+    poses: &BTreeMap<ImageKey, Pose>,
+    kinds: &[PointKind],
+    cams: &[crate::geometry::Camera],
+) -> Option<Pose> {
+    type View = (ImageKey, Pose, Vec<Vec3>, Vec<Vec2>);
+    let views: Vec<View> = images
+        .iter()
+        .filter_map(|(key, obs)| {
+            let cam_from_scene = *poses.get(key)?;
+            let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
+                .iter()
+                .filter_map(|(p, uv)| match kinds[*p] {
+                    PointKind::Body { body: b, local } if b == body => Some((local, *uv)),
+                    _ => None,
+                })
+                .unzip();
+            (local.len() >= 4).then_some((*key, cam_from_scene, local, uv))
+        })
+        .collect();
+    let mut candidates = Vec::new();
+    for (key, cam_from_scene, local, uv) in &views {
+        let cam = &cams[key.1];
+        let Some(fit) = pnp::solve_pose(cam, local, uv) else {
+            continue;
+        };
+        candidates.push(cam_from_scene.inverse() * fit.pose);
+        if pnp::is_planar(local) {
+            let other = pnp::refine_pose(cam, local, uv, pnp::mirrored(&fit.pose, local));
+            candidates.push(cam_from_scene.inverse() * other);
+        }
+    }
+    let cost = |scene_from_body: &Pose| -> f64 {
+        views
+            .iter()
+            .map(|(key, cam_from_scene, local, uv)| {
+                pnp::reprojection_cost(
+                    &cams[key.1],
+                    local,
+                    uv,
+                    &(*cam_from_scene * *scene_from_body),
+                )
+            })
+            .sum()
+    };
+    let mut scored: Vec<(f64, Pose)> = candidates.into_iter().map(|c| (cost(&c), c)).collect();
+    scored.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let (best_cost, best) = *scored.first()?;
+    let n: usize = views.iter().map(|v| v.2.len()).sum();
+    let rival = scored.iter().find(|(_, p)| {
+        crate::geometry::so3::angle_between(&p.rot, &best.rot).to_degrees() > pnp::DISTINCT_DEG
+    });
+    match rival {
+        Some((c, _)) if pnp::ambiguous(best_cost, *c, n) => None,
+        _ => Some(best),
+    }
+}
+
 /// One round of growth: triangulate free points seen by ≥ 2 posed images, then resect
 /// images from known points. Returns whether it grew.
 fn grow(
@@ -539,8 +610,10 @@ fn grow(
         }
         for (enough, _, key, local, uv) in candidates {
             if enough {
-                if let Some(p) = pnp::estimate_pose(&cams[key.1], &local, &uv) {
-                    poses.insert(key, p);
+                if let Some(fit) = pnp::solve_pose(&cams[key.1], &local, &uv) {
+                    if !fit.ambiguous {
+                        poses.insert(key, fit.pose);
+                    }
                 }
             }
         }

@@ -457,7 +457,7 @@ pub fn calibrate_with(
 
     let mut unobservable_directions = Vec::new();
     if let Some(o) = &obs {
-        for (v, s) in &o.null {
+        for (k, (v, s)) in o.null.iter().enumerate() {
             let components: Vec<DirectionComponent> = o
                 .cams
                 .iter()
@@ -488,7 +488,16 @@ pub fn calibrate_with(
             } else {
                 "rotation"
             };
-            let description = if names.len() > 1 {
+            let description = if k < o.held {
+                let plural = names.len() > 1;
+                format!(
+                    "the {}height of {} {} relative to {} along the motion-plane normal: planar motion without a shared scene leaves it unobservable, so it is held at the prior or 0",
+                    if plural { "common " } else { "" },
+                    if plural { "cameras" } else { "camera" },
+                    names.join(", "),
+                    ids[session.reference]
+                )
+            } else if names.len() > 1 {
                 format!("a {kind} shared by cameras {} relative to {}: they can move together without changing any observation", names.join(", "), ids[session.reference])
             } else {
                 format!(

@@ -97,12 +97,14 @@ pub struct Capture {
 const VISIBLE_MARGIN: f64 = 4.0;
 
 /// Build a preset's hall; `size` overrides the image size (intrinsics scale with it).
-pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Option<Hall> {
+/// Errors name the argument at fault (`--preset`, `--size`) or the board that found no
+/// place.
+pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Result<Hall, String> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4a11);
     let handheld = preset == "fisheye-handheld";
     let (w, h) = size.unwrap_or(if handheld { (1024, 768) } else { (1920, 1080) });
     if !(64..=8192).contains(&w) || !(64..=8192).contains(&h) {
-        return None;
+        return Err(format!("--size: 64x64 to 8192x8192, got {w}x{h}"));
     }
     let radtan = |rng: &mut ChaCha8Rng| {
         let mut c = lens_camera(w, h, 0.55, rng);
@@ -166,7 +168,12 @@ pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Option<Hall> {
         "car-hall" => ("general", uturn_and_bump(&mut rng)),
         "car-hall-planar" | "car-hall-isolated" => ("planar", s_curve(14, &mut rng)),
         "fisheye-handheld" => ("general", handheld_motion(12, &mut rng)),
-        _ => return None,
+        _ => {
+            return Err(format!(
+                "--preset: one of {}, got {preset:?}",
+                PRESETS.join(", ")
+            ))
+        }
     };
     let (hx, hy) = if handheld { (4.5, 3.5) } else { (11.0, 7.0) };
     let mut surfaces = room(hx, hy, seed);
@@ -196,8 +203,18 @@ pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Option<Hall> {
             // Re-drawn until the board is inside the hall and, for the isolated preset,
             // no other camera sees any of its tags at any pose.
             let mut placed = None;
-            for _ in 0..200 {
-                let s = board_surface(&layout, v_from_c, b, per_camera, fish, handheld, &mut rng);
+            for attempt in 0..400 {
+                // Pulled towards the optical axis the longer no place is found.
+                let spread = 1.0 - attempt as f64 / 500.0;
+                let s = board_surface(
+                    &layout,
+                    v_from_c,
+                    (b, per_camera),
+                    fish,
+                    handheld,
+                    spread,
+                    &mut rng,
+                );
                 let c = s.world_from_surface.trans;
                 if c.x.abs() > hx - 0.5 || c.y.abs() > hy - 0.5 {
                     continue;
@@ -229,7 +246,9 @@ pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Option<Hall> {
                 placed = Some(s);
                 break;
             }
-            let s = placed?;
+            let s = placed.ok_or_else(|| {
+                format!("--seed {seed}: board {id} found no place that only camera {name} sees; try another seed")
+            })?;
             surfaces.push(s);
             targets.push(TargetSpec::Aprilgrid {
                 id,
@@ -252,7 +271,7 @@ pub fn hall(preset: &str, seed: u64, size: Option<(u32, u32)>) -> Option<Hall> {
         );
     }
     let tags = printed_tags(&surfaces);
-    Some(Hall {
+    Ok(Hall {
         preset: preset.into(),
         motion,
         cameras,
@@ -315,20 +334,21 @@ fn room(hx: f64, hy: f64, seed: u64) -> Vec<Surface> {
 }
 
 /// A board on a stand in front of camera `vehicle_from_cam` (vehicle = world at the first
-/// pose): the `b`-th of `n`, spread across the view, facing the camera ±20°.
+/// pose): the `b`-th of `n`, spread across the view (`spread` of the default width),
+/// facing the camera ±20°.
 fn board_surface(
     layout: &GridLayout,
     vehicle_from_cam: &Pose,
-    b: usize,
-    n: usize,
+    (b, n): (usize, usize),
     fish: bool,
     handheld: bool,
+    spread: f64,
     rng: &mut ChaCha8Rng,
 ) -> Surface {
     let side = layout.cols as f64 * layout.pitch() - layout.gap();
     let optical = vehicle_from_cam.rot * Vec3::z();
     let ahead = Vec3::new(optical.x, optical.y, 0.0).normalize();
-    let spread = if fish { 42.0 } else { 24.0 };
+    let spread = spread * if fish { 42.0 } else { 24.0 };
     let slot = if n == 1 {
         0.0
     } else {
@@ -528,6 +548,17 @@ pub fn image_path(camera: &str, frame: usize, jpeg: bool) -> String {
 }
 
 impl Hall {
+    /// The same hall with the scattered wall tags taken down (AprilGrids only, as a peer
+    /// toolbox that knows only boards is given).
+    pub fn boards_only(mut self) -> Hall {
+        self.surfaces
+            .retain(|s| !matches!(s.paint, Paint::Tag { .. }));
+        self.targets
+            .retain(|t| matches!(t, TargetSpec::Aprilgrid { .. }));
+        self.tags = printed_tags(&self.surfaces);
+        self
+    }
+
     pub fn world_from_cam(&self, frame: usize, cam: usize) -> Pose {
         self.world_from_vehicle[frame] * self.cameras[cam].2
     }

@@ -23,6 +23,10 @@ pub const PRESETS: &[&str] = &[
     "pure-translation",
     "single-axis",
     "wu-table2",
+    "car-hall",
+    "car-hall-planar",
+    "car-hall-isolated",
+    "fisheye-handheld",
 ];
 
 pub mod hall;
@@ -333,6 +337,7 @@ pub fn camera_spec(id: &str, c: &Camera) -> CameraSpec {
 }
 
 /// Build a preset's session (observations with `noise_px` Gaussian pixel noise) and truth.
+/// The hall presets give their fully visible tags' true corners plus that noise.
 pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManifest, Truth)> {
     if !(noise_px.is_finite() && noise_px >= 0.0) {
         return None;
@@ -340,6 +345,12 @@ pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManife
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     if preset == "wu-table2" {
         return Some(ring::generate(&mut rng, noise_px));
+    }
+    if hall::PRESETS.contains(&preset) {
+        let c = hall::hall(preset, seed, None)
+            .ok()?
+            .detection_capture(noise_px, seed)?;
+        return Some((c.manifest, c.truth));
     }
     let sc = if preset == "lebraly-5.1" {
         lebraly(&mut rng)
