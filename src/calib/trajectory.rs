@@ -350,28 +350,15 @@ fn reconstruct_scene(
         bodies.insert(anchor, Pose::identity());
         loop {
             let mut progress = false;
-            // Pose the images from every placed body they see (not where the placed
-            // bodies they see are one plane that two poses explain).
+            // Pose the images from the placed bodies they see that agree with each other
+            // (not where what is left is one plane that two poses explain).
             for (&key, obs) in &images {
                 if poses.contains_key(&key) {
                     continue;
                 }
-                let (local, uv): (Vec<Vec3>, Vec<Vec2>) = obs
-                    .iter()
-                    .filter_map(|(p, uv)| match kinds[*p] {
-                        PointKind::Body { body, local } => {
-                            bodies.get(&body).map(|sb| (sb.apply(&local), *uv))
-                        }
-                        PointKind::Free => None,
-                    })
-                    .unzip();
-                if local.len() >= 4 && (pnp::is_planar(&local) || local.len() >= 6) {
-                    if let Some(fit) = pnp::solve_pose(&cams[key.1], &local, &uv) {
-                        if !fit.ambiguous {
-                            poses.insert(key, fit.pose);
-                            progress = true;
-                        }
-                    }
+                if let Some(pose) = pose_from_bodies(&cams[key.1], obs, kinds, &bodies) {
+                    poses.insert(key, pose);
+                    progress = true;
                 }
             }
             // Place the bodies the posed images see, each from all of them at once.
@@ -536,9 +523,65 @@ fn place_body(
     let rival = scored.iter().find(|(_, p)| {
         crate::geometry::so3::angle_between(&p.rot, &best.rot).to_degrees() > pnp::DISTINCT_DEG
     });
-    match rival {
-        Some((c, _)) if pnp::ambiguous(best_cost, *c, n) => None,
-        _ => Some(best),
+    if matches!(rival, Some((c, _)) if pnp::ambiguous(best_cost, *c, n)) {
+        return None;
+    }
+    // Every view must agree with the placement: one that does not has a wrong pose or
+    // a wrong detection, and either would carry the error on through the body.
+    let agrees = views.iter().all(|(key, cam_from_scene, local, uv)| {
+        let c = pnp::reprojection_cost(&cams[key.1], local, uv, &(*cam_from_scene * best));
+        (c / local.len() as f64).sqrt() <= AGREE_RMS_PX
+    });
+    agrees.then_some(best)
+}
+
+/// RMS reprojection error (px) below which a body's corners in one image agree with a
+/// pose: detections are good to hundredths of a pixel, a flipped or mislinked body is
+/// pixels off.
+const AGREE_RMS_PX: f64 = 1.0;
+
+/// An image's pose from the placed bodies it sees: fitted to all of them, then, while
+/// some body's corners disagree with the pose ([`AGREE_RMS_PX`]), refitted without the
+/// worst one, so one misplaced tag does not drag the pose of an image that also sees a
+/// board. `None` when fewer than 4 points remain or two poses explain them.
+fn pose_from_bodies(
+    cam: &crate::geometry::Camera,
+    obs: &[(usize, Vec2)],
+    kinds: &[PointKind],
+    bodies: &BTreeMap<usize, Pose>,
+) -> Option<Pose> {
+    let mut groups: BTreeMap<usize, (Vec<Vec3>, Vec<Vec2>)> = BTreeMap::new();
+    for (p, uv) in obs {
+        if let PointKind::Body { body, local } = kinds[*p] {
+            if let Some(sb) = bodies.get(&body) {
+                let g = groups.entry(body).or_default();
+                g.0.push(sb.apply(&local));
+                g.1.push(*uv);
+            }
+        }
+    }
+    loop {
+        let (local, uv): (Vec<Vec3>, Vec<Vec2>) = groups
+            .values()
+            .flat_map(|(l, u)| l.iter().copied().zip(u.iter().copied()))
+            .unzip();
+        if local.len() < 4 || !(pnp::is_planar(&local) || local.len() >= 6) {
+            return None;
+        }
+        let fit = pnp::solve_pose(cam, &local, &uv)?;
+        let worst = groups
+            .iter()
+            .map(|(b, (l, u))| {
+                let rms = (pnp::reprojection_cost(cam, l, u, &fit.pose) / l.len() as f64).sqrt();
+                (*b, rms)
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        match worst {
+            Some((b, rms)) if rms > AGREE_RMS_PX => {
+                groups.remove(&b);
+            }
+            _ => return (!fit.ambiguous).then_some(fit.pose),
+        }
     }
 }
 

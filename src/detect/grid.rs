@@ -78,6 +78,56 @@ fn predict(layout: &GridLayout, h: &Mat3, id: u32, lens: Lens, img: &Gray) -> Op
     Some(out)
 }
 
+/// How far (px) a tag's final corners may be from where its board neighbours put them.
+/// Corners are measured to a few hundredths of a pixel and the local homography
+/// carries that to well under half a pixel (under a pixel without the camera, where the
+/// plane keeps the lens's distortion); a tag several pixels off was measured on the
+/// wrong transitions, e.g. a crossing square taken for its corner, while its bits still
+/// read right.
+pub const CONSISTENT_PX: f64 = 1.5;
+
+/// The tags of one board (final corners, raw pixels) that sit more than
+/// [`CONSISTENT_PX`] from where their nearest neighbours' homography puts them, with the
+/// deviation. Worst first, one at a time, so one wrong tag does not condemn the correct
+/// neighbours it would pull; judged only with at least 3 neighbours to judge by.
+pub fn inconsistent(
+    layout: &GridLayout,
+    corners: &BTreeMap<u32, [Vec2; 4]>,
+    lens: Lens,
+) -> BTreeMap<u32, f64> {
+    let mut plane: BTreeMap<u32, [Vec2; 4]> = corners
+        .iter()
+        .filter_map(|(id, c)| Some((*id, lens.quad_to_plane(c)?)))
+        .collect();
+    let mut out = BTreeMap::new();
+    while plane.len() >= 4 {
+        let worst = plane
+            .keys()
+            .filter_map(|&id| {
+                let (r, c) = layout.cell_of(id)?;
+                let h = local_homography(layout, &plane, r, c, Some(id))?;
+                let dev = (0..4)
+                    .map(|k| {
+                        let b = layout.corner(id, k)?;
+                        let p = h * Vec3::new(b.x, b.y, 1.0);
+                        let q = lens.to_pixel(Vec2::new(p.x / p.z, p.y / p.z))?;
+                        Some((q - corners[&id][k]).norm())
+                    })
+                    .try_fold(0.0f64, |m, d| d.map(|d| m.max(d)))?;
+                Some((id, dev))
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        match worst {
+            Some((id, dev)) if dev > CONSISTENT_PX => {
+                plane.remove(&id);
+                out.insert(id, dev);
+            }
+            _ => break,
+        }
+    }
+    out
+}
+
 /// Complete and check one board. `seeds` are the refined quad-detector tags whose ids
 /// belong to the board (at most one per id).
 pub fn complete(
@@ -114,7 +164,10 @@ pub fn complete(
             let err = (0..4)
                 .map(|k| (pred[k] - got[k]).norm())
                 .fold(0.0, f64::max);
-            if err > (0.2 * side).max(3.0) {
+            // Refined corners are good to hundredths of a pixel; a seed pixels off its
+            // neighbours was refined on the wrong transitions. Dropped here, the growth
+            // below measures it again from where the layout puts it.
+            if err > (0.03 * side).max(CONSISTENT_PX) {
                 rejected.push((
                     id,
                     format!("tag {id} lies {err:.1} px from where the board layout puts it"),

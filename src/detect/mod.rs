@@ -205,12 +205,18 @@ pub fn detect_tags(
     let mut tags = Vec::new();
     let mut points = Vec::new();
     let mut border = Vec::new();
-    let mut emit = |target: &str, id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
-        let c = &if opts.whole_tag_fit {
+    let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
+        if opts.whole_tag_fit {
             whole_tag_corners(img, &f.refined.corners, lens, id, layout)
         } else {
             f.refined.corners
-        };
+        }
+    };
+    let mut emit = |target: &str,
+                    id: u32,
+                    f: &grid::Found,
+                    c: &[Vec2; 4],
+                    layout: Option<&GridLayout>| {
         tags.push(TagDetection {
             target: target.to_string(),
             id,
@@ -253,8 +259,25 @@ pub fn detect_tags(
             }
             let mut rej = Vec::new();
             let max_h = opts.quads.max_hamming;
-            for (id, f) in grid::complete(img, layout, seeds, lens, max_h, &mut rej) {
-                emit(name, id, &f, Some(layout));
+            let board: Vec<(u32, grid::Found, [Vec2; 4])> =
+                grid::complete(img, layout, seeds, lens, max_h, &mut rej)
+                    .into_iter()
+                    .map(|(id, f)| {
+                        let c = finish(id, &f, Some(layout));
+                        (id, f, c)
+                    })
+                    .collect();
+            let corners: BTreeMap<u32, [Vec2; 4]> =
+                board.iter().map(|(id, _, c)| (*id, *c)).collect();
+            let off = grid::inconsistent(layout, &corners, lens);
+            for (id, f, c) in &board {
+                match off.get(id) {
+                    Some(dev) => rej.push((
+                        *id,
+                        format!("tag {id}: measured {dev:.1} px from where its neighbours on the board put it (its edges were found on the wrong transitions)"),
+                    )),
+                    None => emit(name, *id, f, c, Some(layout)),
+                }
             }
             rejected.extend(rej.into_iter().map(|(id, reason)| Rejection { id, reason }));
         }
@@ -268,7 +291,8 @@ pub fn detect_tags(
                 .collect();
             for id in take {
                 if let Some(f) = refined.remove(&id) {
-                    emit(name, id, &f, None);
+                    let c = finish(id, &f, None);
+                    emit(name, id, &f, &c, None);
                 }
             }
         }

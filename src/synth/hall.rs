@@ -96,6 +96,10 @@ pub struct Capture {
 /// Corners this close to the image border (px) do not count as fully visible.
 const VISIBLE_MARGIN: f64 = 4.0;
 
+/// A tag whose shortest side in the image is under this (px, 1.5 px per cell of its 8)
+/// is in view but not legible, by any detector: it does not count as visible.
+pub const LEGIBLE_SIDE_PX: f64 = 12.0;
+
 /// Build a preset's hall; `size` overrides the image size (intrinsics scale with it).
 /// Errors name the argument at fault (`--preset`, `--size`) or the board that found no
 /// place.
@@ -563,7 +567,8 @@ impl Hall {
         self.world_from_vehicle[frame] * self.cameras[cam].2
     }
 
-    /// The true corners of the fully visible tags in one image.
+    /// The true corners of the fully visible tags in one image: in the image, nothing in
+    /// front, and legible ([`LEGIBLE_SIDE_PX`]).
     pub fn visible(&self, frame: usize, cam: usize) -> BTreeMap<String, [f64; 2]> {
         let (_, camera, _) = &self.cameras[cam];
         let wc = self.world_from_cam(frame, cam);
@@ -571,6 +576,7 @@ impl Hall {
         let mut out = BTreeMap::new();
         for t in &self.tags {
             if let Some(uv) = visible_corners(camera, &wc, &view, &self.surfaces, t, VISIBLE_MARGIN)
+                .filter(|uv| (0..4).all(|k| (uv[k] - uv[(k + 1) % 4]).norm() >= LEGIBLE_SIDE_PX))
             {
                 for (k, p) in uv.iter().enumerate() {
                     out.insert(format!("tag:{}:{k}", t.id), [p.x, p.y]);
