@@ -99,6 +99,14 @@ pub fn decode(
             });
         }
     }
+    // The JPEG decoder fills a file cut short with grey and says nothing; the PNG one
+    // catches it by the checksums. A JPEG is whole when its end-of-image marker follows
+    // the image's entropy-coded data.
+    if meta.format == "jpeg" && !jpeg_is_whole(bytes) {
+        return Err(ImageError::Undecodable(
+            "a JPEG cut short: no end-of-image marker after its image data".into(),
+        ));
+    }
     let (mut r, _) = reader(bytes)?;
     let mut limits = Limits::default();
     limits.max_image_width = Some(meta.width);
@@ -110,6 +118,32 @@ pub fn decode(
         .decode()
         .map_err(|e| ImageError::Undecodable(e.to_string()))?;
     Ok((meta, img))
+}
+
+/// Does the JPEG carry an end-of-image marker (`FF D9`) after its first scan? The
+/// segments before the scan are stepped over by their lengths (an EXIF thumbnail inside
+/// APP1 has an end marker of its own); inside entropy-coded data `FF` is always followed
+/// by `00` or a restart marker, so the first `FF D9` there is the image's end.
+fn jpeg_is_whole(bytes: &[u8]) -> bool {
+    let mut i = 2;
+    while i + 1 < bytes.len() {
+        if bytes[i] != 0xFF {
+            return false;
+        }
+        let marker = bytes[i + 1];
+        match marker {
+            0xFF => i += 1,
+            0xDA => return bytes[i..].windows(2).any(|w| w == [0xFF, 0xD9]),
+            0x01 | 0xD0..=0xD7 => i += 2,
+            _ => {
+                let Some(len) = bytes.get(i + 2..i + 4) else {
+                    return false;
+                };
+                i += 2 + u16::from_be_bytes([len[0], len[1]]) as usize;
+            }
+        }
+    }
+    false
 }
 
 #[cfg(test)]
@@ -150,6 +184,37 @@ mod tests {
             inspect(b"hello", None, 1 << 20),
             Err(ImageError::UnsupportedFormat(_))
         ));
+    }
+
+    fn jpeg(w: u32, h: u32) -> Vec<u8> {
+        let img =
+            image::GrayImage::from_fn(w, h, |x, y| image::Luma([((x * 5 + y * 11) % 255) as u8]));
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, 92)
+            .encode_image(&img)
+            .unwrap();
+        out
+    }
+
+    /// A JPEG cut at any point after its header is refused (the decoder alone pads it
+    /// with grey); the whole file, and one with bytes after its end, are accepted.
+    #[test]
+    fn refuses_a_truncated_jpeg() {
+        let j = jpeg(64, 48);
+        assert!(inspect(&j, Some((64, 48)), 1 << 20).is_ok());
+        for cut in [j.len() / 2, j.len() - 2, j.len() - 1, j.len() * 3 / 4] {
+            assert!(
+                matches!(
+                    inspect(&j[..cut], Some((64, 48)), 1 << 20),
+                    Err(ImageError::Undecodable(_))
+                ),
+                "cut at {cut} of {}",
+                j.len()
+            );
+        }
+        let mut trailer = j.clone();
+        trailer.extend_from_slice(b"trailing metadata");
+        assert!(inspect(&trailer, Some((64, 48)), 1 << 20).is_ok());
     }
 
     /// CRC-32 (PNG chunks), bitwise.

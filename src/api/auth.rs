@@ -31,10 +31,11 @@ impl FromRequestParts<AppState> for AuthTenant {
         let text = value
             .to_str()
             .map_err(|_| unauthorized("the Authorization header is not valid text"))?;
+        // The scheme is case-insensitive (RFC 9110 §11.1): `Bearer`, `bearer`, `BEARER`.
         let key = text
-            .strip_prefix("Bearer ")
-            .or_else(|| text.strip_prefix("bearer "))
-            .map(str::trim)
+            .split_once(' ')
+            .filter(|(scheme, _)| scheme.eq_ignore_ascii_case("bearer"))
+            .map(|(_, k)| k.trim())
             .filter(|k| !k.is_empty() && k.len() <= 256)
             .ok_or_else(|| unauthorized("expected Authorization: Bearer <api key>"))?;
         match state.store.tenant_for_key(key).await? {

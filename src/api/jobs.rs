@@ -264,6 +264,33 @@ pub async fn cancel(
     Ok((StatusCode::ACCEPTED, Json(job_json(&job, &tenant))).into_response())
 }
 
+/// The event a stream resumes after: `Last-Event-ID` as a non-negative integer no
+/// later than the newest event stored (anything else would start the stream somewhere
+/// the client did not ask for: from now, from the beginning, or never), `None` without
+/// the header.
+async fn resume_after(state: &AppState, headers: &HeaderMap) -> Result<Option<i64>, ApiError> {
+    let Some(value) = headers.get("last-event-id") else {
+        return Ok(None);
+    };
+    let bad = |detail: String| {
+        ApiError::new(StatusCode::BAD_REQUEST, "invalid-field", detail).field("Last-Event-ID")
+    };
+    let n: i64 = value
+        .to_str()
+        .ok()
+        .map(str::trim)
+        .filter(|s| !s.is_empty() && s.len() <= 19 && s.bytes().all(|b| b.is_ascii_digit()))
+        .and_then(|s| s.parse().ok())
+        .ok_or_else(|| bad("a non-negative integer, the id of an event this server sent".into()))?;
+    let latest = state.queue.last_event_id().await?;
+    if n > latest {
+        return Err(bad(format!(
+            "an event id this server sent (the latest is {latest}), got {n}"
+        )));
+    }
+    Ok(Some(n))
+}
+
 /// `GET /v1/jobs/{id}/events`: server-sent events, one per stored job event, resumable
 /// with `Last-Event-ID`; the stream ends after the job's terminal event.
 pub async fn events(
@@ -273,11 +300,7 @@ pub async fn events(
     headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     job_or_404(&state, &tenant.id, &id).await?;
-    let mut last: i64 = headers
-        .get("last-event-id")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|s| s.parse().ok())
-        .unwrap_or(0);
+    let mut last: i64 = resume_after(&state, &headers).await?.unwrap_or(0);
     let queue = state.queue.clone();
     let stream = async_stream::stream! {
         loop {
@@ -317,10 +340,7 @@ pub async fn tenant_events(
     AuthTenant(tenant): AuthTenant,
     headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
-    let resume: Option<i64> = headers
-        .get("last-event-id")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|s| s.trim().parse().ok());
+    let resume = resume_after(&state, &headers).await?;
     let mut last = match resume {
         Some(n) => n,
         None => state.queue.last_event_id().await?,
