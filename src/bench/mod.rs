@@ -3,6 +3,7 @@
 //! numbers are recorded in `docs/accuracy.md` and `docs/performance.md`.
 
 pub mod accuracy;
+pub mod capture;
 pub mod detect;
 pub mod ring;
 pub mod speed;

@@ -134,7 +134,9 @@ pub struct Observability {
     pub per_camera_eigen: Vec<Vec<f64>>,
 }
 
-pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
+/// `sigma_floor_px`: the least corner noise the covariance assumes (see
+/// `pipeline::DETECTED_CORNER_SIGMA_FLOOR_PX`).
+pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observability> {
     let (cams, info) = ba.information.clone()?;
     let n = info.nrows();
     let sym = (&info + info.transpose()) * 0.5;
@@ -147,7 +149,7 @@ pub fn observability(ba: &RigBaOutput) -> Option<Observability> {
     let eig = crate::solver::eigen::symmetric_eigen(&(&keep * &sym * &keep));
     let lmax = eig.eigenvalues.amax().max(1e-300);
     let sigma = if ba.sigma_px.is_finite() {
-        ba.sigma_px
+        ba.sigma_px.max(sigma_floor_px)
     } else {
         1.0
     };
