@@ -403,10 +403,11 @@ fn run() -> Result<i32> {
         Command::Apikey {
             what: ApikeyCommand::Create { tenant, data_dir },
         } => {
-            let name = tenant.trim();
-            if name.is_empty() || name.len() > 128 || name == rigcal::api::auth::LOCAL_TENANT {
+            let name = tenant.as_str();
+            rigcal::session::check_identifier("--tenant", name).map_err(|e| anyhow!("{e}"))?;
+            if name == rigcal::api::auth::LOCAL_TENANT {
                 return Err(anyhow!(
-                    "--tenant: a name of 1 to 128 characters other than \"local\", got {tenant:?}"
+                    "--tenant: a name other than \"local\" (the tenant of --insecure-no-auth)"
                 ));
             }
             let key = runtime()?.block_on(async {

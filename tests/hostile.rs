@@ -111,3 +111,79 @@ async fn bearer_is_case_insensitive_and_last_event_id_is_strict() {
         drop(r);
     }
 }
+
+/// Findings 1 and 3: identifiers follow one grammar (`[A-Za-z0-9][A-Za-z0-9_.-]{0,63}`)
+/// at the boundary, so no id can add keys to a YAML export or elements to a URDF, and a
+/// 1 MB id is refused without being echoed back; nothing is stored.
+#[tokio::test]
+async fn hostile_identifiers_are_refused_naming_the_field() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let c = client(&key);
+    let good = synth_session("lebraly-5.1", 1, 0.5, "car-1");
+    let long = "x".repeat(1 << 20);
+    for (bad, field) in [
+        ("cam99\ncamera_model: pwned", "cameras[1].id"),
+        ("a\"b", "cameras[1].id"),
+        ("<link name='x'/>", "cameras[1].id"),
+        ("x-->", "cameras[1].id"),
+        ("-front", "cameras[1].id"),
+        ("a b", "cameras[1].id"),
+        (long.as_str(), "cameras[1].id"),
+    ] {
+        let mut m = good.clone();
+        m["cameras"][1]["id"] = Value::String(bad.into());
+        let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
+        let body = expect_problem(r, 422, "invalid-field").await;
+        assert_eq!(body["field"], field, "{bad:?}: {body}");
+        assert!(
+            body.to_string().len() < 2000,
+            "the id was echoed back: {} bytes",
+            body.to_string().len()
+        );
+    }
+    let mut m = good.clone();
+    m["vehicle_id"] = Value::String(long.clone());
+    let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
+    let body = expect_problem(r, 422, "invalid-field").await;
+    assert_eq!(body["field"], "vehicle_id", "{body}");
+    let mut m = good.clone();
+    m["frames"][0]["observations"]["cam1"][0]["point"] = Value::String("p\"1".into());
+    let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
+    let body = expect_problem(r, 422, "invalid-field").await;
+    assert_eq!(
+        body["field"], "frames[0].observations.cam1[0].point",
+        "{body}"
+    );
+    // The edge cases of the grammar are accepted.
+    let mut m = good.clone();
+    m["cameras"][1]["id"] = Value::String("9.a_b-c".into());
+    m["frames"] = serde_json::json!([]);
+    m["scale"] = serde_json::json!([]);
+    let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 201, "{}", r.text().await.unwrap());
+    let jobs: Value = c
+        .get(s.url("/v1/jobs"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(jobs["jobs"].as_array().map_or(0, |j| j.len()), 0, "{jobs}");
+    // Tenants too.
+    let out = std::process::Command::new(BIN)
+        .args([
+            "apikey",
+            "create",
+            "--tenant",
+            "acme\ninjected",
+            "--data-dir",
+        ])
+        .arg(dir.path())
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains("--tenant"));
+}

@@ -171,11 +171,12 @@ pub fn validate_vanishing(
         id: aux_spec.id.clone(),
         camera: camera_from_spec(aux_spec, "auxiliary_camera")?,
     };
-    if aux_spec.id.is_empty() || cameras.iter().any(|c| c.id == aux_spec.id) {
+    super::check_identifier("auxiliary_camera.id", &aux_spec.id)?;
+    if cameras.iter().any(|c| c.id == aux_spec.id) {
         return Err(InputError::new(
             "auxiliary_camera.id",
             format!(
-                "a non-empty id different from the rig cameras', got {:?}",
+                "an id different from the rig cameras', got {:?}",
                 aux_spec.id
             ),
         ));

@@ -32,3 +32,68 @@ impl InputError {
         }
     }
 }
+
+/// Longest identifier (camera, target, vehicle, vehicle model, tenant).
+pub const MAX_IDENTIFIER_LEN: usize = 64;
+/// Longest point id.
+pub const MAX_POINT_ID_LEN: usize = 128;
+
+/// Identifiers — camera, target, vehicle, vehicle model, tenant — are
+/// `[A-Za-z0-9][A-Za-z0-9_.-]{0,63}`. They become YAML keys (Kalibr, OpenCV), XML
+/// attributes and frame names (URDF, ROS), file names (exports) and SQL values, and are
+/// copied into every job row and view: a grammar with no quotes, spaces, newlines,
+/// colons, slashes or angle brackets cannot break any of those formats, and a bound keeps
+/// rows small. Letters, digits, `_`, `.` and `-` cover the names rigs use (`cam0`,
+/// `front-left`, `board_2.5m`).
+pub fn check_identifier(field: &str, value: &str) -> Result<(), InputError> {
+    let ok = !value.is_empty()
+        && value.len() <= MAX_IDENTIFIER_LEN
+        && value.as_bytes()[0].is_ascii_alphanumeric()
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'.' | b'-'));
+    if ok {
+        Ok(())
+    } else {
+        Err(InputError::new(
+            field,
+            format!(
+                "an identifier: 1-{MAX_IDENTIFIER_LEN} characters of A-Z a-z 0-9 _ . -, starting with a letter or digit, got {}",
+                quoted_prefix(value)
+            ),
+        ))
+    }
+}
+
+/// Point ids (`tag:12:3`, user-chosen names) are up to 128 printable ASCII characters
+/// without spaces, quotes or backslashes.
+pub fn check_point_id(field: &str, value: &str) -> Result<(), InputError> {
+    let ok = !value.is_empty()
+        && value.len() <= MAX_POINT_ID_LEN
+        && value
+            .bytes()
+            .all(|b| b.is_ascii_graphic() && !matches!(b, b'"' | b'\\' | b'\''));
+    if ok {
+        Ok(())
+    } else {
+        Err(InputError::new(
+            field,
+            format!(
+                "a point id: 1-{MAX_POINT_ID_LEN} printable ASCII characters without spaces, quotes or backslashes, got {}",
+                quoted_prefix(value)
+            ),
+        ))
+    }
+}
+
+/// A value as an error message shows it: quoted, escaped, and cut after 40 characters
+/// (a 20 MB id is not echoed back).
+pub fn quoted_prefix(value: &str) -> String {
+    let mut chars = value.chars();
+    let head: String = chars.by_ref().take(40).collect();
+    if chars.next().is_some() {
+        format!("{head:?}… ({} bytes)", value.len())
+    } else {
+        format!("{head:?}")
+    }
+}

@@ -373,14 +373,18 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             format!("at most {MAX_FRAMES} frames, got {}", m.frames.len()),
         ));
     }
+    if let Some(v) = &m.vehicle_id {
+        super::check_identifier("vehicle_id", v)?;
+    }
     let mut cameras = Vec::new();
     let mut seen = HashSet::new();
     for (i, c) in m.cameras.iter().enumerate() {
         let at = format!("cameras[{i}]");
-        if c.id.is_empty() || !seen.insert(c.id.clone()) {
+        super::check_identifier(&format!("{at}.id"), &c.id)?;
+        if !seen.insert(c.id.clone()) {
             return Err(InputError::new(
                 format!("{at}.id"),
-                format!("a non-empty id unique among cameras, got {:?}", c.id),
+                format!("an id unique among cameras, got {:?}", c.id),
             ));
         }
         cameras.push(NamedCamera {
@@ -408,10 +412,11 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
     let mut point_owner: HashMap<&str, usize> = HashMap::new();
     for (i, t) in m.targets.iter().enumerate() {
         let at = format!("targets[{i}]");
-        if t.id().is_empty() || !target_ids.insert(t.id().to_string()) {
+        super::check_identifier(&format!("{at}.id"), t.id())?;
+        if !target_ids.insert(t.id().to_string()) {
             return Err(InputError::new(
                 format!("{at}.id"),
-                format!("a non-empty id unique among targets, got {:?}", t.id()),
+                format!("an id unique among targets, got {:?}", t.id()),
             ));
         }
         let positive = |name: &str, x: f64| -> Result<(), InputError> {
@@ -461,6 +466,7 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
                     ));
                 }
                 for (pid, xyz) in points {
+                    super::check_point_id(&format!("{at}.points"), pid)?;
                     for (k, x) in xyz.iter().enumerate() {
                         finite(format!("{at}.points.{pid}[{k}]"), *x)?;
                     }
@@ -544,13 +550,11 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
                         ),
                     ));
                 }
-                if o.point.is_empty() || !in_frame.insert(o.point.as_str()) {
+                super::check_point_id(&format!("{at}.point"), &o.point)?;
+                if !in_frame.insert(o.point.as_str()) {
                     return Err(InputError::new(
                         format!("{at}.point"),
-                        format!(
-                            "a non-empty point id seen once per image, got {:?}",
-                            o.point
-                        ),
+                        format!("a point id seen once per image, got {:?}", o.point),
                     ));
                 }
                 all_ids.push(o.point.clone());
