@@ -187,3 +187,92 @@ async fn hostile_identifiers_are_refused_naming_the_field() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("--tenant"));
 }
+
+/// Finding 7: an archive naming one entry twice (two `session.json`, an image twice,
+/// in tar and in zip) is refused with 422 naming the entry, and no session is created.
+#[tokio::test]
+async fn archives_with_duplicate_entries_are_refused() {
+    use std::io::Write;
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let c = client(&key);
+    let manifest = serde_json::to_vec(&image_session(1, 64, 48)).unwrap();
+    // The zip writer refuses a name twice: the second image is written as 0001 and
+    // renamed in the bytes (local header and central directory; same length).
+    let zip_of = |files: &[(&str, Vec<u8>)]| {
+        let mut out = std::io::Cursor::new(Vec::new());
+        {
+            let mut z = zip::ZipWriter::new(&mut out);
+            let mut seen = std::collections::HashSet::new();
+            for (name, bytes) in files {
+                let name = if seen.insert(*name) {
+                    name.to_string()
+                } else {
+                    name.replace("0000", "0001")
+                };
+                z.start_file(name, zip::write::SimpleFileOptions::default())
+                    .unwrap();
+                z.write_all(bytes).unwrap();
+            }
+            z.finish().unwrap();
+        }
+        let mut bytes = out.into_inner();
+        let (from, to) = (b"front/0001.png", b"front/0000.png");
+        for i in 0..bytes.len() - from.len() {
+            if &bytes[i..i + from.len()] == from {
+                bytes[i..i + from.len()].copy_from_slice(to);
+            }
+        }
+        bytes
+    };
+    let twice_manifest = [
+        ("session.json", manifest.clone()),
+        ("session.json", manifest.clone()),
+    ];
+    let twice_image = [
+        ("session.json", manifest.clone()),
+        ("front/0000.png", png(64, 48, 1)),
+        ("rear/0000.png", png(64, 48, 2)),
+        ("front/0000.png", png(64, 48, 3)),
+    ];
+    for (what, body, ct, entry) in [
+        (
+            "tar manifest",
+            tar_archive(&twice_manifest),
+            "application/x-tar",
+            "session.json",
+        ),
+        (
+            "tar image",
+            tar_archive(&twice_image),
+            "application/x-tar",
+            "front/0000.png",
+        ),
+        (
+            "zip image",
+            zip_of(&twice_image),
+            "application/zip",
+            "front/0000.png",
+        ),
+    ] {
+        let r = c
+            .post(s.url("/v1/sessions"))
+            .header("content-type", ct)
+            .body(body)
+            .send()
+            .await
+            .unwrap();
+        let p = expect_problem(r, 422, "invalid-archive").await;
+        assert!(p["detail"].as_str().unwrap().contains(entry), "{what}: {p}");
+    }
+    let jobs: Value = c
+        .get(s.url("/v1/jobs"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(jobs["jobs"].as_array().map_or(0, |j| j.len()), 0);
+}

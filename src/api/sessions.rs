@@ -202,7 +202,16 @@ fn unpack(
         if files.len() >= 200_000 {
             return Err(bad("an archive of at most 200000 files".into()));
         }
-        files.insert(name.trim_start_matches("./").to_string(), buf);
+        // Two entries of one name (two session.json, an image twice): which one the
+        // client meant is unknowable, so neither is taken.
+        let key = name.trim_start_matches("./").to_string();
+        if files.contains_key(&key) {
+            return Err(bad(format!(
+                "archive entry names unique, got {} twice",
+                crate::session::quoted_prefix(&key)
+            )));
+        }
+        files.insert(key, buf);
         Ok(())
     };
     match kind {
@@ -226,6 +235,14 @@ fn unpack(
             }
         }
         ArchiveKind::Zip => {
+            // The zip reader keeps one entry per name; a name twice is found in the
+            // central directory itself.
+            if let Some(name) = zip_duplicate_name(body) {
+                return Err(bad(format!(
+                    "archive entry names unique, got {} twice",
+                    crate::session::quoted_prefix(&name)
+                )));
+            }
             let mut ar = zip::ZipArchive::new(std::io::Cursor::new(body))
                 .map_err(|e| bad(format!("not a readable zip archive: {e}")))?;
             for i in 0..ar.len() {
@@ -244,6 +261,42 @@ fn unpack(
         }
     }
     Ok(files)
+}
+
+/// A name that the zip's central directory lists twice. Walks the directory from the
+/// end-of-central-directory record (the last one in the file; a zip64 directory, whose
+/// offset does not fit there, is left to the reader).
+fn zip_duplicate_name(body: &[u8]) -> Option<String> {
+    let le16 = |b: &[u8], i: usize| Some(u16::from_le_bytes([*b.get(i)?, *b.get(i + 1)?]) as usize);
+    let le32 = |b: &[u8], i: usize| {
+        Some(
+            u32::from_le_bytes([*b.get(i)?, *b.get(i + 1)?, *b.get(i + 2)?, *b.get(i + 3)?])
+                as usize,
+        )
+    };
+    let eocd = (0..=body.len().checked_sub(22)?)
+        .rev()
+        .take(22 + 65_535)
+        .find(|&i| body[i..].starts_with(b"PK\x05\x06"))?;
+    let (count, offset) = (le16(body, eocd + 10)?, le32(body, eocd + 16)?);
+    let mut at = offset;
+    let mut names = std::collections::HashSet::new();
+    for _ in 0..count {
+        if !body.get(at..)?.starts_with(b"PK\x01\x02") {
+            return None;
+        }
+        let (n, m, k) = (
+            le16(body, at + 28)?,
+            le16(body, at + 30)?,
+            le16(body, at + 32)?,
+        );
+        let name = String::from_utf8_lossy(body.get(at + 46..at + 46 + n)?).to_string();
+        if !names.insert(name.clone()) {
+            return Some(name);
+        }
+        at += 46 + n + m + k;
+    }
+    None
 }
 
 /// The manifest of an unpacked archive: `session.json` at the top or in one folder.
