@@ -1,14 +1,15 @@
 //! Captures that look like what users send (issue 17): the hall presets of
 //! `rigcal synth`, as detections and as rendered JPEG images.
 
+mod common;
+
+use common::*;
 use rigcal::bench::accuracy::{error6, observable, synthetic_session};
 use rigcal::geometry::Vec3;
-use rigcal::pipeline::detection::MemorySource;
-use rigcal::pipeline::{calibrate, CalibOptions, Silent};
-use rigcal::result::{ExtrinsicValue, Status};
-use rigcal::session::parse_session;
+use rigcal::pipeline::{calibrate, CalibOptions};
+use rigcal::result::{ExtrinsicValue, ResultDocument, Status};
 use rigcal::synth::hall::{hall, Hall, Nuisance};
-use std::collections::HashMap;
+use serde_json::Value;
 
 /// A planar S-curve where every target is seen by one camera only: each non-reference
 /// camera's height along the plane normal is unobservable, everything else is. The
@@ -85,38 +86,68 @@ fn an_isolated_planar_drive_is_degraded_with_each_height_held_and_named() {
 
 /// A hall capture rendered as a vehicle's cameras deliver it (JPEG q 92, blur,
 /// vignetting, gain/offset, noise; AprilGrids of mixed sizes, wall tags, boards cut by
-/// the border; two radtan and two fisheye cameras), at 1024×576 to keep the test short:
-/// from images to a `succeeded` result within 2 mm and 0.02° of the truth, every
-/// detection a valid observation.
-#[test]
-fn a_rendered_hall_capture_calibrates_from_jpeg_images() {
+/// the border; two radtan and two fisheye cameras), at 1024×576 to keep the test short,
+/// uploaded to the real service as one tar archive: the job detects and calibrates it to
+/// a `succeeded` result within 2 mm and 0.02° of the truth, every truth within 3 σ.
+#[tokio::test]
+async fn a_rendered_hall_capture_calibrates_through_the_service() {
     let h = hall("car-hall", 2, Some((1024, 576))).unwrap();
     let nuisance = Nuisance::default();
     let capture = h.image_capture(true);
-    let mut files = HashMap::new();
+    let mut files: Vec<(String, Vec<u8>)> = vec![(
+        "capture/session.json".into(),
+        serde_json::to_vec(&capture.manifest).unwrap(),
+    )];
     for (frame, spec) in capture.manifest.frames.iter().enumerate() {
         for (cam, path) in &spec.images {
             let ci = h.cameras.iter().position(|c| &c.0 == cam).unwrap();
             let img = h.render(frame, ci, &nuisance, (frame * 8 + ci) as u64);
-            files.insert(path.clone(), Hall::encode(&img, &nuisance).unwrap());
+            files.push((
+                format!("capture/{path}"),
+                Hall::encode(&img, &nuisance).unwrap(),
+            ));
         }
     }
-    let session =
-        parse_session(serde_json::to_string(&capture.manifest).unwrap().as_bytes()).unwrap();
-    let doc = rigcal::pipeline::run(
-        &session,
-        &MemorySource(files),
-        &CalibOptions::default(),
-        &Silent,
+    let entries: Vec<(&str, Vec<u8>)> =
+        files.iter().map(|(p, b)| (p.as_str(), b.clone())).collect();
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .header("content-type", "application/x-tar")
+        .body(tar_archive(&entries))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["images_received"], 72, "{v}");
+    let job = submit(&c, &s, v["id"].as_str().unwrap()).await;
+    let done = wait_job(
+        &c,
+        &s,
+        job["id"].as_str().unwrap(),
+        std::time::Duration::from_secs(300),
     )
-    .unwrap();
-    assert_eq!(doc.status, Status::Succeeded, "{:?}", doc.reasons);
+    .await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let doc: ResultDocument = c
+        .get(s.url(&format!("/v1/jobs/{}/result", job["id"].as_str().unwrap())))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
     let det = doc.detection.as_ref().unwrap();
     assert_eq!(det.images_total, 72);
     assert_eq!(det.images_skipped, 0);
     for e in &doc.extrinsics {
         let truth = capture.truth.ref_from_cam[&e.value.camera];
-        let (dr, dt) = ExtrinsicValue::pose(&e.value).distance(&truth);
+        let est = ExtrinsicValue::pose(&e.value);
+        let (dr, dt) = est.distance(&truth);
         assert!(
             dt < 2e-3 && dr.to_degrees() < 0.02,
             "{}: {:.2} mm, {:.4}°",
@@ -124,5 +155,11 @@ fn a_rendered_hall_capture_calibrates_from_jpeg_images() {
             dt * 1e3,
             dr.to_degrees()
         );
+        for a in 0..3 {
+            if let Some(sigma) = e.sigma_translation_m[a].filter(|s| *s > 0.0) {
+                let z = (est.trans[a] - truth.trans[a]) / sigma;
+                assert!(z.abs() <= 3.0, "{} axis {a}: {z:.1} σ", e.value.camera);
+            }
+        }
     }
 }
