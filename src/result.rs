@@ -358,6 +358,10 @@ pub struct ImageReport {
     /// Why the image was skipped (unreadable, not an image, wrong size, too large).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<String>,
+    /// Its bytes could not be read at all (a missing file, a lost blob): the input's
+    /// fault, not the capture's.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub unreadable: bool,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

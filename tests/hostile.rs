@@ -276,3 +276,58 @@ async fn archives_with_duplicate_entries_are_refused() {
         .unwrap();
     assert_eq!(jobs["jobs"].as_array().map_or(0, |j| j.len()), 0);
 }
+
+/// Finding 5: a stored image whose blob is lost is reported: the session view lists it
+/// as lost (and missing, not received), and a job over it fails with `input_missing`
+/// naming the image after its retries — never with a verdict on the capture
+/// (`camera_not_observed`).
+#[tokio::test]
+async fn a_lost_blob_is_an_input_error_not_a_calibration_verdict() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1", "--max-attempts", "2"]);
+    let c = client(&key);
+    let sess = create_session(&c, &s, &image_session(1, 64, 48)).await;
+    let sid = sess["id"].as_str().unwrap().to_string();
+    for (cam, seed) in [("front", 1u8), ("rear", 2)] {
+        let r = c
+            .put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/0")))
+            .header("content-type", "image/png")
+            .body(png(64, 48, seed))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 200);
+    }
+    let sha = rigcal::store::blob::sha256_hex(&png(64, 48, 2));
+    std::fs::remove_file(dir.path().join("blobs").join(&sha[..2]).join(&sha)).unwrap();
+    let view = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
+    assert_eq!(view["images_received"], 1, "{view}");
+    assert_eq!(
+        view["images_lost"],
+        serde_json::json!(["frames[0].images.rear"]),
+        "{view}"
+    );
+    assert_eq!(
+        view["images_missing"][0]["field"], "frames[0].images.rear",
+        "{view}"
+    );
+    let job = submit(&c, &s, &sid).await;
+    let done = wait_job(
+        &c,
+        &s,
+        job["id"].as_str().unwrap(),
+        std::time::Duration::from_secs(60),
+    )
+    .await;
+    assert_eq!(done["status"], "failed", "{done}");
+    assert_eq!(done["error"]["code"], "input_missing", "{done}");
+    assert!(
+        done["error"]["detail"]
+            .as_str()
+            .unwrap()
+            .contains("frames[0].images.rear"),
+        "{done}"
+    );
+    assert_eq!(done["attempts"], 2, "{done}");
+}

@@ -85,9 +85,19 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
         .map(|i| ((i.camera.clone(), i.frame), i))
         .collect();
     let all = image_slots(session);
+    // Received once but whose bytes are gone from the blob store (a lost disk, a removed
+    // directory): missing again, and said so, rather than "received".
+    let lost: Vec<&ImageSlot> = all
+        .iter()
+        .filter(|s| {
+            have.get(&(s.camera.clone(), s.frame))
+                .is_some_and(|i| !store.blobs.contains(&i.sha256))
+        })
+        .collect();
     let missing: Vec<&ImageSlot> = all
         .iter()
         .filter(|s| !have.contains_key(&(s.camera.clone(), s.frame)))
+        .chain(lost.iter().copied())
         .collect();
     let check: Value = row
         .capture_check
@@ -103,8 +113,9 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
         "cameras": session.cameras.iter().map(|c| json!({"id": c.id, "width": c.camera.width, "height": c.camera.height})).collect::<Vec<_>>(),
         "frames": session.frames.len(),
         "images_expected": all.len(),
-        "images_received": images.len(),
+        "images_received": images.len() - lost.len(),
         "images_missing": missing,
+        "images_lost": lost.iter().map(|s| s.field.as_str()).collect::<Vec<_>>(),
         "capture_check": check,
     }))
 }

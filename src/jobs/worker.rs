@@ -226,6 +226,23 @@ async fn run_job(
         return;
     }
     match outcome {
+        // The session's images could not be read (storage): not a verdict on the capture,
+        // and perhaps transient, so retried with backoff like other storage failures.
+        Ok(Ok(Ok(doc))) if doc.reasons.iter().any(|r| r.code == "input_missing") => {
+            let message = doc
+                .reasons
+                .iter()
+                .find(|r| r.code == "input_missing")
+                .map(|r| r.message.clone())
+                .unwrap_or_default();
+            tracing::warn!(job = %job.id, "{message}");
+            let p = problem("input_missing", message, None);
+            if let Ok(s) = queue.fail(&job.id, name, &p, true, backoff).await {
+                if s == "failed" {
+                    metrics.job_finished("failed");
+                }
+            }
+        }
         Ok(Ok(Ok(doc))) => {
             let status = doc.status.as_str();
             let text = match serde_json::to_string(&doc) {

@@ -22,7 +22,10 @@ use std::time::Instant;
 pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 50_000_000;
 
 /// Where the stage reads a slot's bytes: files next to the manifest (CLI) or the
-/// service's blob store.
+/// service's blob store. An error here means the input is not available (a missing
+/// file, a lost blob, a storage failure): the job fails with `input_missing` naming the
+/// images, never with a verdict on a capture it could not read. (Bytes that are there
+/// but do not decode are the capture's fault: that image is skipped with its reason.)
 pub trait ImageSource: Sync {
     fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String>;
 
@@ -84,6 +87,11 @@ pub enum DetectionFailure {
     Inconsistent {
         field: String,
         expected: String,
+        report: DetectionReport,
+    },
+    /// Images whose bytes could not be read (field paths, with why).
+    InputMissing {
+        images: Vec<(String, String)>,
         report: DetectionReport,
     },
 }
@@ -199,6 +207,11 @@ pub fn detect_session(
         }
         images.push(report);
     }
+    let unreadable: Vec<(String, String)> = images
+        .iter()
+        .filter(|r| r.unreadable)
+        .map(|r| (r.field.clone(), r.error.clone().unwrap_or_default()))
+        .collect();
     let report = DetectionReport {
         images_total: images.len(),
         images_skipped: images.iter().filter(|r| r.error.is_some()).count(),
@@ -206,6 +219,12 @@ pub fn detect_session(
         seconds: start.elapsed().as_secs_f64(),
         images,
     };
+    if !unreadable.is_empty() {
+        return Err(DetectionFailure::InputMissing {
+            images: unreadable,
+            report,
+        });
+    }
     match from_manifest(manifest) {
         Ok(detected) => Ok((detected, Some(report))),
         Err(e) => Err(DetectionFailure::Inconsistent {
@@ -249,12 +268,26 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
         tags_from_layout: 0,
         rejected: vec![],
         error: None,
+        unreadable: false,
     };
     let camera = session
         .camera_index(&slot.camera)
         .map(|i| &session.cameras[i].camera);
+    let bytes = match source.read(slot) {
+        Ok(b) => b,
+        Err(e) => {
+            report.error = Some(e);
+            report.unreadable = true;
+            let none = if session.manifest.method == Method::Vanishing {
+                Found::Lines(vec![])
+            } else {
+                Found::Points(vec![])
+            };
+            return (report, none);
+        }
+    };
     if session.manifest.method == Method::Vanishing {
-        let outcome = source.read(slot).and_then(|bytes| {
+        let outcome = Ok(bytes).and_then(|bytes: Vec<u8>| {
             let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
             line_slot(session, slot, &gray)
         });
@@ -270,7 +303,7 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
             }
         };
     }
-    let outcome = source.read(slot).and_then(|bytes| {
+    let outcome = Ok(bytes).and_then(|bytes: Vec<u8>| {
         let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
         detect_tags(
             &gray,

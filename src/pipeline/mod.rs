@@ -239,6 +239,27 @@ pub fn run(
             doc.detection = Some(report);
             return Ok(doc);
         }
+        Err(detection::DetectionFailure::InputMissing { images, report }) => {
+            let n = images.len();
+            let (field, why) = &images[0];
+            let mut doc = failed(
+                session,
+                vec![reason(
+                    "input_missing",
+                    format!(
+                        "{n} image(s) of the session could not be read ({field}: {why}{}); the capture was not judged",
+                        if n > 1 { "; ..." } else { "" }
+                    ),
+                    None,
+                )],
+                vec![Stage {
+                    name: "detection".into(),
+                    seconds: report.seconds,
+                }],
+            );
+            doc.detection = Some(report);
+            return Ok(doc);
+        }
     };
     calibrate_detected(&detected, report, opts, progress)
 }
