@@ -245,9 +245,14 @@ pub fn accuracy(preset: &str, sigmas: &[f64], trials: usize, seed0: u64) -> Vec<
                 n += 1;
                 ct += (0..3).map(|k| obs.crb[(6 * i + k, 6 * i + k)]).sum::<f64>();
                 cr += (3..6).map(|k| obs.crb[(6 * i + k, 6 * i + k)]).sum::<f64>();
-                // NEES only where every direction is determined: elsewhere the reported
-                // covariance is singular along the held heights.
-                if obs.null_dim > 0 {
+                // NEES only where every direction is determined, by the truth and by the
+                // result: elsewhere the reported covariance is singular along the held
+                // heights.
+                let held = doc
+                    .singularity
+                    .as_ref()
+                    .is_some_and(|s| !s.unobservable_directions.is_empty());
+                if obs.null_dim > 0 || held {
                     continue;
                 }
                 if let Some(cov) = doc.extrinsics[c].covariance {

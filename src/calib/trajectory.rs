@@ -178,11 +178,19 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 // MAX_SPLITS times.
                 let origin = part_of.unwrap_or(s);
                 let n_splits = splits.entry(origin).or_insert(0usize);
+                // Past MAX_SPLITS a rest is still split off when it holds a board: each
+                // such split places that board at least, so it ends.
                 let built = !r.points.is_empty() || (!r.bodies.is_empty() && !r.poses.is_empty());
-                if built && *n_splits < MAX_SPLITS {
-                    if let Some(rest) =
-                        split_rest(session, &mut scene_of_point, s, &r, scenes.len())
-                    {
+                let boards_only = *n_splits >= MAX_SPLITS;
+                if built {
+                    if let Some(rest) = split_rest(
+                        session,
+                        &mut scene_of_point,
+                        s,
+                        &r,
+                        scenes.len(),
+                        boards_only,
+                    ) {
                         *n_splits += 1;
                         scenes.push(None);
                         queue.push_back((rest, Some(origin)));
@@ -251,22 +259,40 @@ fn scale_from_shared_motion<'a>(
     true
 }
 
-/// How many times one scene's chain may be split into a further scene.
+/// How many times one scene's chain may be split into a further scene (then only rests
+/// holding a board, see [`split_rest`]).
 const MAX_SPLITS: usize = 3;
+/// A body of at least this many points is a board: its pose is never ambiguous.
+const BOARD_POINTS: usize = 16;
 
 /// Points of scene `s` that its reconstruction `r` left out (free points not
 /// triangulated, bodies not placed), relabelled as scene `next` if enough images see
 /// them to start one: two images of 8 free points (a two-view start), or one image of 4
 /// points of an unplaced body. Bodies stay out when only ambiguous poses would link
-/// them ([`place_body`]); their own scene then gives their cameras' trajectories.
+/// them ([`place_body`]); their own scene then gives their cameras' trajectories. With
+/// `boards_only`, only a rest that holds a board (≥ [`BOARD_POINTS`] points) is split off.
 fn split_rest(
     session: &Session,
     scene_of_point: &mut [Option<usize>],
     s: usize,
     r: &SceneRecon,
     next: usize,
+    boards_only: bool,
 ) -> Option<usize> {
     let kinds = &session.points.kinds;
+    if boards_only {
+        let mut size: HashMap<usize, usize> = HashMap::new();
+        for (p, k) in kinds.iter().enumerate() {
+            if let PointKind::Body { body, .. } = k {
+                if scene_of_point[p] == Some(s) && !r.bodies.contains_key(body) {
+                    *size.entry(*body).or_default() += 1;
+                }
+            }
+        }
+        if !size.values().any(|&n| n >= BOARD_POINTS) {
+            return None;
+        }
+    }
     let left_out = |p: usize| match kinds[p] {
         PointKind::Free => !r.points.contains_key(&p),
         PointKind::Body { body, .. } => !r.bodies.contains_key(&body),
@@ -492,11 +518,14 @@ fn place_body(
         })
         .collect();
     let mut candidates = Vec::new();
+    // Each view's own fit, for the noise level the agreement is judged at.
+    let mut own_rms = Vec::new();
     for (key, cam_from_scene, local, uv) in &views {
         let cam = &cams[key.1];
         let Some(fit) = pnp::solve_pose(cam, local, uv) else {
             continue;
         };
+        own_rms.push((fit.cost / local.len() as f64).sqrt());
         candidates.push(cam_from_scene.inverse() * fit.pose);
         if pnp::is_planar(local) {
             let other = pnp::refine_pose(cam, local, uv, pnp::mirrored(&fit.pose, local));
@@ -526,19 +555,101 @@ fn place_body(
     if matches!(rival, Some((c, _)) if pnp::ambiguous(best_cost, *c, n)) {
         return None;
     }
-    // Every view must agree with the placement: one that does not has a wrong pose or
-    // a wrong detection, and either would carry the error on through the body.
+    // Refined against all views at once, then every view must agree with it: one that
+    // does not has a wrong pose or a wrong detection, and either would carry the error
+    // on through the body. The poses of the views carry their own noise onto the body
+    // (a board metres from the one that posed the image), so agreement is judged at a
+    // few times the body's own noise in each view, never under a pixel.
+    let best = refine_body(&views, cams, best);
+    let noise = median(own_rms).unwrap_or(0.0);
+    let limit = (AGREE_NOISE_FACTOR * noise).max(AGREE_RMS_PX);
     let agrees = views.iter().all(|(key, cam_from_scene, local, uv)| {
         let c = pnp::reprojection_cost(&cams[key.1], local, uv, &(*cam_from_scene * best));
-        (c / local.len() as f64).sqrt() <= AGREE_RMS_PX
+        (c / local.len() as f64).sqrt() <= limit
     });
     agrees.then_some(best)
 }
 
-/// RMS reprojection error (px) below which a body's corners in one image agree with a
-/// pose: detections are good to hundredths of a pixel, a flipped or mislinked body is
-/// pixels off.
+/// RMS reprojection error (px) below which a body's corners in one image always agree
+/// with a placement: detections are good to hundredths of a pixel, a flipped or
+/// mislinked body is pixels off.
 const AGREE_RMS_PX: f64 = 1.0;
+/// ... and the multiple of the body's own single-view noise above that.
+const AGREE_NOISE_FACTOR: f64 = 5.0;
+
+/// `scene_from_body` refined to all the views that see the body (their poses held):
+/// Gauss–Newton with Levenberg damping on the pixel errors, Jacobian by central
+/// differences (6 unknowns, a few hundred residuals).
+fn refine_body(
+    views: &[(ImageKey, Pose, Vec<Vec3>, Vec<Vec2>)],
+    cams: &[crate::geometry::Camera],
+    init: Pose,
+) -> Pose {
+    let residuals = |p: &Pose| -> Option<Vec<f64>> {
+        let mut r = Vec::new();
+        for (key, cam_from_scene, local, uv) in views {
+            let cam_from_body = *cam_from_scene * *p;
+            for (x, m) in local.iter().zip(uv) {
+                let q = cams[key.1].project(&cam_from_body.apply(x))?;
+                r.push(q.x - m.x);
+                r.push(q.y - m.y);
+            }
+        }
+        Some(r)
+    };
+    let step = |p: &Pose, d: &nalgebra::Vector6<f64>| {
+        p.perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]))
+    };
+    let cost = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
+    let mut pose = init;
+    let Some(mut r) = residuals(&pose) else {
+        return init;
+    };
+    let mut lambda = 1e-3;
+    for _ in 0..20 {
+        let h = 1e-6;
+        let mut jac = nalgebra::DMatrix::<f64>::zeros(r.len(), 6);
+        for k in 0..6 {
+            let mut d = nalgebra::Vector6::zeros();
+            d[k] = h;
+            let (Some(a), Some(b)) = (residuals(&step(&pose, &d)), residuals(&step(&pose, &-d)))
+            else {
+                return pose;
+            };
+            for i in 0..r.len() {
+                jac[(i, k)] = (a[i] - b[i]) / (2.0 * h);
+            }
+        }
+        let jt = jac.transpose();
+        let g = &jt * nalgebra::DVector::from_column_slice(&r);
+        let hess = &jt * &jac;
+        let mut improved = false;
+        for _ in 0..8 {
+            let mut damped = hess.clone();
+            for i in 0..6 {
+                damped[(i, i)] += lambda * hess[(i, i)].max(1e-12);
+            }
+            let Some(delta) = damped.cholesky().map(|c| c.solve(&(-&g))) else {
+                break;
+            };
+            let d = nalgebra::Vector6::from_iterator(delta.iter().copied());
+            let cand = step(&pose, &d);
+            if let Some(rc) = residuals(&cand).filter(|rc| cost(rc) < cost(&r)) {
+                let done = cost(&r) - cost(&rc) < 1e-10 * cost(&r).max(1e-30);
+                pose = cand;
+                r = rc;
+                lambda = (lambda / 3.0).max(1e-9);
+                improved = !done;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    pose
+}
 
 /// An image's pose from the placed bodies it sees: fitted to all of them, then, while
 /// some body's corners disagree with the pose ([`AGREE_RMS_PX`]), refitted without the
