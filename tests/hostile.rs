@@ -331,3 +331,48 @@ async fn a_lost_blob_is_an_input_error_not_a_calibration_verdict() {
     );
     assert_eq!(done["attempts"], 2, "{done}");
 }
+
+/// Finding 4: storage failures are honest and not sticky. The blob directory removed
+/// while the server runs is recreated on the next upload; a blob directory that cannot
+/// be written (here a file in its place; root ignores permissions) answers 503
+/// `storage-unavailable` with `Retry-After`, and uploads work again once it is back.
+#[tokio::test]
+async fn storage_failures_are_503_and_recover_without_restart() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let c = client(&key);
+    let sess = create_session(&c, &s, &image_session(2, 64, 48)).await;
+    let sid = sess["id"].as_str().unwrap().to_string();
+    let put = |cam: &'static str, frame: u32, seed: u8| {
+        c.put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/{frame}")))
+            .header("content-type", "image/png")
+            .body(png(64, 48, seed))
+            .send()
+    };
+    let blobs = dir.path().join("blobs");
+    std::fs::remove_dir_all(&blobs).unwrap();
+    let r = put("front", 0, 1).await.unwrap();
+    assert_eq!(r.status().as_u16(), 200, "{}", r.text().await.unwrap());
+
+    let kept = dir.path().join("blobs.kept");
+    std::fs::rename(&blobs, &kept).unwrap();
+    std::fs::write(&blobs, b"not a directory").unwrap();
+    let r = put("rear", 0, 2).await.unwrap();
+    assert_eq!(
+        r.headers().get("retry-after").map(|v| v.to_str().unwrap()),
+        Some("5")
+    );
+    let body = expect_problem(r, 503, "storage-unavailable").await;
+    assert!(
+        !body["detail"].as_str().unwrap().contains("blobs"),
+        "paths stay in the log: {body}"
+    );
+
+    std::fs::remove_file(&blobs).unwrap();
+    std::fs::rename(&kept, &blobs).unwrap();
+    let r = put("rear", 0, 2).await.unwrap();
+    assert_eq!(r.status().as_u16(), 200, "{}", r.text().await.unwrap());
+    let view = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
+    assert_eq!(view["images_received"], 2, "{view}");
+}

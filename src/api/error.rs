@@ -68,6 +68,17 @@ impl ApiError {
         .field(e.field)
     }
 
+    /// Storage (the blob directory, the database file) failed: 503 with `Retry-After`,
+    /// the operation and path in the log only, nothing stored by the request.
+    pub fn storage(e: impl std::fmt::Display) -> Self {
+        tracing::error!("storage unavailable: {e}");
+        Self::new(
+            StatusCode::SERVICE_UNAVAILABLE,
+            "storage-unavailable",
+            "the server's storage is unavailable; nothing was stored by this request, retry later",
+        )
+    }
+
     pub fn internal(e: impl std::fmt::Display) -> Self {
         tracing::error!("internal error: {e}");
         Self::new(
@@ -79,8 +90,24 @@ impl ApiError {
 }
 
 impl From<sqlx::Error> for ApiError {
+    /// A database that cannot be read or written (I/O, a read-only or full disk, a file
+    /// that cannot be opened) is storage unavailable; anything else is internal.
     fn from(e: sqlx::Error) -> Self {
-        Self::internal(e)
+        let storage = match &e {
+            sqlx::Error::Io(_) | sqlx::Error::PoolTimedOut => true,
+            sqlx::Error::Database(d) => {
+                let m = d.message().to_ascii_lowercase();
+                ["readonly", "disk", "i/o", "unable to open"]
+                    .iter()
+                    .any(|k| m.contains(k))
+            }
+            _ => false,
+        };
+        if storage {
+            Self::storage(e)
+        } else {
+            Self::internal(e)
+        }
     }
 }
 
@@ -118,6 +145,10 @@ pub fn problem_response(
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let mut r = problem_response(self.status, self.slug, self.detail, self.field);
+        if self.status == StatusCode::SERVICE_UNAVAILABLE {
+            r.headers_mut()
+                .insert(header::RETRY_AFTER, HeaderValue::from_static("5"));
+        }
         if self.status == StatusCode::UNAUTHORIZED {
             r.headers_mut().insert(
                 header::WWW_AUTHENTICATE,

@@ -370,7 +370,7 @@ async fn store_images(
     })
     .await
     .map_err(ApiError::internal)?
-    .map_err(ApiError::internal)?;
+    .map_err(ApiError::storage)?;
     for r in &rows {
         store.insert_image(session_id, r).await?;
     }
@@ -445,7 +445,7 @@ pub async fn create(
     )
     .await
     .map_err(ApiError::internal)?
-    .map_err(ApiError::internal)?;
+    .map_err(ApiError::storage)?;
     let row = state
         .store
         .insert_session(

@@ -39,28 +39,36 @@ impl BlobStore {
     }
 
     /// Store `bytes` (blocking I/O: call from a blocking thread). Returns the hash.
+    /// The working directories are created again when they have gone (a cleaned or
+    /// restored data directory must not need a restart); every error names the
+    /// operation and the path under the blob directory.
     pub fn put(&self, bytes: &[u8]) -> io::Result<String> {
         let hash = sha256_hex(bytes);
         let dest = self.path_of(&hash);
         if dest.exists() {
             return Ok(hash);
         }
+        let at = |op: &'static str, p: &Path| {
+            let shown = p.strip_prefix(&self.root).unwrap_or(p).display().to_string();
+            move |e: io::Error| io::Error::new(e.kind(), format!("{op} blobs/{shown}: {e}"))
+        };
         let dir = self.root.join(&hash[..2]);
-        fs::create_dir_all(&dir)?;
-        let tmp = self
-            .root
-            .join("tmp")
-            .join(format!("{}.{}", hash, uuid::Uuid::new_v4().simple()));
+        let tmp_dir = self.root.join("tmp");
+        fs::create_dir_all(&dir).map_err(at("creating", &dir))?;
+        fs::create_dir_all(&tmp_dir).map_err(at("creating", &tmp_dir))?;
+        let tmp = tmp_dir.join(format!("{}.{}", hash, uuid::Uuid::new_v4().simple()));
         {
-            let mut f = File::create(&tmp)?;
-            f.write_all(bytes)?;
-            f.sync_all()?;
+            let mut f = File::create(&tmp).map_err(at("creating", &tmp))?;
+            f.write_all(bytes).map_err(at("writing", &tmp))?;
+            f.sync_all().map_err(at("syncing", &tmp))?;
         }
         if let Err(e) = fs::rename(&tmp, &dest) {
             let _ = fs::remove_file(&tmp);
-            return Err(e);
+            return Err(at("renaming into", &dest)(e));
         }
-        File::open(&dir)?.sync_all()?;
+        File::open(&dir)
+            .and_then(|d| d.sync_all())
+            .map_err(at("syncing", &dir))?;
         Ok(hash)
     }
 
