@@ -169,6 +169,23 @@ struct ServeArgs {
     /// Largest image, pixels (checked from the header, before decoding).
     #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", default_value_t = 50_000_000)]
     max_image_pixels: u64,
+    /// Archive uploads read at once; more are refused with 503 and Retry-After.
+    #[arg(long, env = "RIGCAL_MAX_CONCURRENT_ARCHIVES", default_value_t = 4)]
+    max_concurrent_archives: usize,
+    /// Seconds a connection may take to send a request's headers, counted from when it
+    /// starts waiting for the request (so also the idle keep-alive timeout).
+    #[arg(long, env = "RIGCAL_HEADER_TIMEOUT_SECONDS", default_value_t = 30)]
+    header_timeout_seconds: u64,
+    /// Seconds a request body may pause between two chunks (a slow link that keeps
+    /// sending passes; a client that stops does not).
+    #[arg(long, env = "RIGCAL_BODY_TIMEOUT_SECONDS", default_value_t = 60)]
+    body_timeout_seconds: u64,
+    /// Seconds a request that neither uploads nor streams may take from start to answer.
+    #[arg(long, env = "RIGCAL_REQUEST_TIMEOUT_SECONDS", default_value_t = 120)]
+    request_timeout_seconds: u64,
+    /// Event streams (`/v1/events`, `/v1/jobs/{id}/events`) one tenant may hold open.
+    #[arg(long, env = "RIGCAL_MAX_STREAMS_PER_TENANT", default_value_t = 32)]
+    max_streams_per_tenant: usize,
 }
 
 #[derive(Subcommand)]
@@ -365,6 +382,20 @@ fn run() -> Result<i32> {
                     "--workers at most 64, --lease-seconds at least 1, --max-attempts at least 1"
                 ));
             }
+            if a.max_concurrent_archives < 1
+                || a.max_streams_per_tenant < 1
+                || [
+                    a.header_timeout_seconds,
+                    a.body_timeout_seconds,
+                    a.request_timeout_seconds,
+                ]
+                .iter()
+                .any(|&t| !(1..=86_400).contains(&t))
+            {
+                return Err(anyhow!(
+                    "--max-concurrent-archives and --max-streams-per-tenant at least 1; --header-timeout-seconds, --body-timeout-seconds and --request-timeout-seconds between 1 and 86400"
+                ));
+            }
             let cfg = ServeConfig {
                 bind: a.bind,
                 data_dir: a.data_dir,
@@ -376,6 +407,11 @@ fn run() -> Result<i32> {
                 max_image_bytes: a.max_image_bytes,
                 max_archive_bytes: a.max_archive_bytes,
                 max_image_pixels: a.max_image_pixels,
+                max_concurrent_archives: a.max_concurrent_archives,
+                header_timeout: Duration::from_secs(a.header_timeout_seconds),
+                body_timeout: Duration::from_secs(a.body_timeout_seconds),
+                request_timeout: Duration::from_secs(a.request_timeout_seconds),
+                max_streams_per_tenant: a.max_streams_per_tenant,
             };
             runtime()?.block_on(rigcal::api::serve(cfg))?;
             Ok(0)

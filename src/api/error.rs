@@ -6,7 +6,7 @@
 //! so that no error escapes in another format.
 
 use crate::session::InputError;
-use axum::body::Body;
+use axum::body::{Body, Bytes};
 use axum::http::{header, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use serde::Serialize;
@@ -79,6 +79,43 @@ impl ApiError {
         )
     }
 
+    /// A request body that could not be read: beyond the route's limit (413), paused
+    /// longer than the body timeout (408), or cut off (400).
+    pub fn body(e: &(dyn std::error::Error + 'static), limit: usize) -> Self {
+        let mut cur: Option<&(dyn std::error::Error + 'static)> = Some(e);
+        while let Some(err) = cur {
+            if err.is::<http_body_util::LengthLimitError>() {
+                return Self::new(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    "payload-too-large",
+                    format!("a request body of at most {limit} bytes"),
+                );
+            }
+            if err.is::<tower_http::timeout::TimeoutError>() {
+                return Self::new(
+                    StatusCode::REQUEST_TIMEOUT,
+                    "request-timeout",
+                    "the request body paused longer than the server's body timeout",
+                );
+            }
+            cur = err.source();
+        }
+        Self::new(
+            StatusCode::BAD_REQUEST,
+            "bad-request",
+            "the request body could not be read to its end",
+        )
+    }
+
+    /// Read a whole (small) request body, at most `limit` bytes.
+    pub async fn read_body(body: axum::body::Body, limit: usize) -> Result<Bytes, Self> {
+        let limited = http_body_util::Limited::new(body, limit);
+        match http_body_util::BodyExt::collect(limited).await {
+            Ok(c) => Ok(c.to_bytes()),
+            Err(e) => Err(Self::body(&*e, limit)),
+        }
+    }
+
     pub fn internal(e: impl std::fmt::Display) -> Self {
         tracing::error!("internal error: {e}");
         Self::new(
@@ -120,21 +157,31 @@ fn title(slug: &str) -> String {
     t
 }
 
+/// The problem document (RFC 9457) of an error.
+pub fn problem_json(
+    status: StatusCode,
+    slug: &str,
+    detail: &str,
+    field: Option<String>,
+) -> serde_json::Value {
+    let p = Problem {
+        kind: format!("urn:rigcal:problem:{slug}"),
+        title: title(slug),
+        status: status.as_u16(),
+        detail: detail.to_string(),
+        field,
+        instance: None,
+    };
+    serde_json::to_value(&p).unwrap_or_default()
+}
+
 pub fn problem_response(
     status: StatusCode,
     slug: &str,
     detail: String,
     field: Option<String>,
 ) -> Response {
-    let p = Problem {
-        kind: format!("urn:rigcal:problem:{slug}"),
-        title: title(slug),
-        status: status.as_u16(),
-        detail,
-        field,
-        instance: None,
-    };
-    let body = serde_json::to_vec(&p).unwrap_or_default();
+    let body = problem_json(status, slug, &detail, field).to_string();
     let mut r = Response::new(Body::from(body));
     *r.status_mut() = status;
     r.headers_mut()
@@ -169,6 +216,9 @@ fn slug_for(status: StatusCode) -> &'static str {
         StatusCode::UNPROCESSABLE_ENTITY => "invalid-field",
         StatusCode::BAD_REQUEST => "bad-request",
         StatusCode::UNAUTHORIZED => "unauthorized",
+        // Bare 503s come from the whole-request timeout (storage errors are problems
+        // already).
+        StatusCode::SERVICE_UNAVAILABLE => "request-timeout",
         s if s.is_server_error() => "internal",
         _ => "bad-request",
     }
@@ -198,10 +248,17 @@ pub async fn problem_fallback(resp: Response) -> Response {
         (StatusCode::PAYLOAD_TOO_LARGE, _) => {
             "the request body exceeds the configured limit for this endpoint".into()
         }
+        (StatusCode::SERVICE_UNAVAILABLE, true) => {
+            "the request took longer than the server's request timeout; retry later".into()
+        }
         (_, true) => status.canonical_reason().unwrap_or("error").to_string(),
         (_, false) => text,
     };
     let mut r = problem_response(status, slug_for(status), detail, None);
+    if status == StatusCode::SERVICE_UNAVAILABLE {
+        r.headers_mut()
+            .insert(header::RETRY_AFTER, HeaderValue::from_static("5"));
+    }
     if let Some(a) = allow {
         r.headers_mut().insert(header::ALLOW, a);
     }

@@ -301,7 +301,9 @@ pub async fn events(
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     job_or_404(&state, &tenant.id, &id).await?;
     let mut last: i64 = resume_after(&state, &headers).await?.unwrap_or(0);
+    let mut slot = state.events.open(&tenant.id)?;
     let queue = state.queue.clone();
+    let mut shutdown = state.shutdown.clone();
     let stream = async_stream::stream! {
         loop {
             let events = match queue.events_after(&id, last).await {
@@ -325,7 +327,13 @@ pub async fn events(
                     break;
                 }
             }
-            tokio::time::sleep(Duration::from_millis(250)).await;
+            if *shutdown.borrow() {
+                break;
+            }
+            tokio::select! {
+                _ = slot.changed() => {},
+                _ = shutdown.changed() => {},
+            }
         }
     };
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
@@ -345,6 +353,7 @@ pub async fn tenant_events(
         Some(n) => n,
         None => state.queue.last_event_id().await?,
     };
+    let mut slot = state.events.open(&tenant.id)?;
     let queue = state.queue.clone();
     let mut shutdown = state.shutdown.clone();
     let stream = async_stream::stream! {
@@ -365,7 +374,7 @@ pub async fn tenant_events(
                 yield Ok(Event::default().id(e.id.to_string()).event("job").data(data));
             }
             tokio::select! {
-                _ = tokio::time::sleep(Duration::from_millis(250)) => {},
+                _ = slot.changed() => {},
                 _ = shutdown.changed() => {},
             }
         }

@@ -1,10 +1,13 @@
 //! The HTTP service: axum routers over the store, the queue and the engine.
 //! `build_app` assembles the app once; `serve` binds it (and starts embedded workers).
 
+mod archive;
 pub mod auth;
 pub mod error;
+mod events;
 mod figures;
 mod jobs;
+mod listen;
 mod ops;
 mod sessions;
 mod tenant;
@@ -37,6 +40,16 @@ pub struct ServeConfig {
     pub max_image_bytes: usize,
     pub max_archive_bytes: usize,
     pub max_image_pixels: u64,
+    /// Archive uploads read at once (each holds a spool file and a blocking thread).
+    pub max_concurrent_archives: usize,
+    /// From waiting for a request to having its headers (also the idle keep-alive).
+    pub header_timeout: Duration,
+    /// Longest pause between two chunks of a request body.
+    pub body_timeout: Duration,
+    /// Whole-request limit for routes that neither upload nor stream.
+    pub request_timeout: Duration,
+    /// Event streams one tenant may hold open.
+    pub max_streams_per_tenant: usize,
 }
 
 impl Default for ServeConfig {
@@ -52,6 +65,11 @@ impl Default for ServeConfig {
             max_image_bytes: 64 << 20,
             max_archive_bytes: 1 << 30,
             max_image_pixels: 50_000_000,
+            max_concurrent_archives: 4,
+            header_timeout: Duration::from_secs(30),
+            body_timeout: Duration::from_secs(60),
+            request_timeout: Duration::from_secs(120),
+            max_streams_per_tenant: 32,
         }
     }
 }
@@ -64,6 +82,10 @@ pub struct AppState {
     pub config: Arc<ServeConfig>,
     /// Turns `true` when the server starts shutting down: endless streams end then.
     pub shutdown: tokio::sync::watch::Receiver<bool>,
+    /// Slots for archive uploads (`max_concurrent_archives`).
+    pub archive_slots: Arc<tokio::sync::Semaphore>,
+    /// The shared event poller and the per-tenant stream counts.
+    pub events: Arc<events::EventHub>,
 }
 
 async fn record_latency(State(state): State<AppState>, req: Request, next: Next) -> Response {
@@ -105,13 +127,14 @@ fn body_limit(
 
 pub fn build_app(state: AppState) -> Router {
     let cfg = state.config.clone();
-    let v1 = Router::new()
+    // Uploads are bounded by the body timeout (a slow link that keeps sending passes),
+    // event streams by nothing but the client and shutdown; everything else answers
+    // within the request timeout.
+    let uploads = Router::new()
         .route(
             "/sessions",
             post(sessions::create).layer(body_limit(cfg.max_archive_bytes)),
         )
-        .route("/sessions/{id}", get(sessions::show))
-        .route("/sessions/{id}/check", get(sessions::check))
         .route(
             "/sessions/{id}/images/{camera}/{frame}",
             put(sessions::put_image).layer(body_limit(cfg.max_image_bytes)),
@@ -119,7 +142,13 @@ pub fn build_app(state: AppState) -> Router {
         .route(
             "/sessions/{id}/archive",
             post(sessions::archive).layer(body_limit(cfg.max_archive_bytes)),
-        )
+        );
+    let streams = Router::new()
+        .route("/events", get(jobs::tenant_events))
+        .route("/jobs/{id}/events", get(jobs::events));
+    let timed = Router::new()
+        .route("/sessions/{id}", get(sessions::show))
+        .route("/sessions/{id}/check", get(sessions::check))
         .route(
             "/jobs",
             post(jobs::create)
@@ -127,17 +156,25 @@ pub fn build_app(state: AppState) -> Router {
                 .get(jobs::list),
         )
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
-        .route("/events", get(jobs::tenant_events))
         .route("/tenant", get(tenant::show))
         .route("/jobs/{id}/figures/{name}", get(figures::job))
         .route("/vehicles/{vehicle_id}/drift.svg", get(figures::drift))
-        .route("/jobs/{id}/events", get(jobs::events))
         .route("/jobs/{id}/result", get(jobs::result))
         .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
         .route(
             "/vehicles/{vehicle_id}/calibrations",
             get(vehicles::calibrations),
         )
+        .layer(tower_http::timeout::TimeoutLayer::with_status_code(
+            axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            cfg.request_timeout,
+        ));
+    let v1 = uploads
+        .merge(streams)
+        .merge(timed)
+        .layer(tower_http::timeout::RequestBodyTimeoutLayer::new(
+            cfg.body_timeout,
+        ))
         .layer(DefaultBodyLimit::max(cfg.max_manifest_bytes));
     Router::new()
         .nest("/v1", v1)
@@ -184,22 +221,26 @@ pub async fn start(
         .map_err(|e| anyhow::anyhow!("binding {}: {e}", config.bind))?;
     let addr: SocketAddr = listener.local_addr()?;
     let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let queue = Queue::new(store.pool.clone());
     let state = AppState {
-        queue: Queue::new(store.pool.clone()),
+        archive_slots: Arc::new(tokio::sync::Semaphore::new(config.max_concurrent_archives)),
+        events: events::EventHub::start(
+            queue.clone(),
+            config.max_streams_per_tenant,
+            stop_rx.clone(),
+        ),
+        queue,
         store,
         metrics,
         config: Arc::new(config),
         shutdown: stop_rx,
     };
+    let header_timeout = state.config.header_timeout;
     let app = build_app(state);
-    let server = async move {
-        axum::serve(listener, app)
-            .with_graceful_shutdown(async move {
-                crate::signals::shutdown_signal().await;
-                let _ = stop_tx.send(true);
-            })
-            .await
-    };
+    let server = listen::serve(listener, app, header_timeout, async move {
+        crate::signals::shutdown_signal().await;
+        let _ = stop_tx.send(true);
+    });
     Ok((addr, server))
 }
 

@@ -4,6 +4,7 @@
 //! Writes follow one order so that a failed request changes nothing: validate
 //! everything first, then write blobs (atomic, content-addressed), then the rows.
 
+use super::archive::{self, ArchiveKind, Limits, Unpacked};
 use super::auth::AuthTenant;
 use super::error::ApiError;
 use super::AppState;
@@ -11,15 +12,15 @@ use crate::calib::check::capture_check;
 use crate::imageio::{self, ImageError, ImageMeta};
 use crate::pipeline::undetected_images;
 use crate::session::{image_slots, parse_session, ImageSlot, InputError, Session};
+use crate::store::blob::{StageError, Staged};
 use crate::store::{rfc3339, ImageRow, SessionRow, Store, Tenant};
-use axum::body::Bytes;
+use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
 use serde_json::{json, Value};
-use std::collections::{BTreeMap, HashMap};
-use std::io::Read;
+use std::collections::HashMap;
 
 /// Parse a stored or uploaded manifest. Syntax errors are 400 `malformed-json`;
 /// content errors 422 with the field path (`limit-exceeded` for the size limits).
@@ -164,203 +165,44 @@ fn content_type(headers: &HeaderMap) -> String {
         .unwrap_or_default()
 }
 
-enum ArchiveKind {
-    Tar,
-    Zip,
-}
-
-fn archive_kind(headers: &HeaderMap, body: &[u8]) -> Option<ArchiveKind> {
-    match content_type(headers).as_str() {
-        "application/zip" | "application/x-zip-compressed" => Some(ArchiveKind::Zip),
-        "application/x-tar" | "application/tar" => Some(ArchiveKind::Tar),
-        "application/octet-stream" if body.starts_with(b"PK\x03\x04") => Some(ArchiveKind::Zip),
-        "application/octet-stream" if body.len() > 262 && &body[257..262] == b"ustar" => {
-            Some(ArchiveKind::Tar)
-        }
-        _ => None,
-    }
-}
-
-/// Files of an archive (path → bytes), total size capped (zip bombs).
-fn unpack(
-    kind: ArchiveKind,
-    body: &[u8],
-    max_total: usize,
-) -> Result<BTreeMap<String, Vec<u8>>, ApiError> {
-    let bad = |d: String| {
-        ApiError::new(StatusCode::UNPROCESSABLE_ENTITY, "invalid-archive", d).field("archive")
-    };
-    let mut files = BTreeMap::new();
-    let mut total = 0usize;
-    let mut add = |name: String,
-                   r: &mut dyn Read,
-                   files: &mut BTreeMap<String, Vec<u8>>|
-     -> Result<(), ApiError> {
-        let mut buf = Vec::new();
-        let left = max_total.saturating_sub(total);
-        r.take(left as u64 + 1)
-            .read_to_end(&mut buf)
-            .map_err(|e| bad(format!("archive entry {name} is unreadable: {e}")))?;
-        if buf.len() > left {
-            return Err(ApiError::new(
-                StatusCode::PAYLOAD_TOO_LARGE,
-                "payload-too-large",
-                format!("the archive unpacks to more than {max_total} bytes"),
-            )
-            .field("archive"));
-        }
-        total += buf.len();
-        if files.len() >= 200_000 {
-            return Err(bad("an archive of at most 200000 files".into()));
-        }
-        // Two entries of one name (two session.json, an image twice): which one the
-        // client meant is unknowable, so neither is taken.
-        let key = name.trim_start_matches("./").to_string();
-        if files.contains_key(&key) {
-            return Err(bad(format!(
-                "archive entry names unique, got {} twice",
-                crate::session::quoted_prefix(&key)
-            )));
-        }
-        files.insert(key, buf);
-        Ok(())
-    };
-    match kind {
-        ArchiveKind::Tar => {
-            let mut ar = tar::Archive::new(body);
-            let entries = ar
-                .entries()
-                .map_err(|e| bad(format!("not a readable tar archive: {e}")))?;
-            for entry in entries {
-                let mut entry =
-                    entry.map_err(|e| bad(format!("a tar entry is unreadable: {e}")))?;
-                if !entry.header().entry_type().is_file() {
-                    continue;
-                }
-                let name = entry
-                    .path()
-                    .map_err(|e| bad(format!("a tar entry has an invalid path: {e}")))?
-                    .to_string_lossy()
-                    .to_string();
-                add(name, &mut entry, &mut files)?;
-            }
-        }
-        ArchiveKind::Zip => {
-            // The zip reader keeps one entry per name; a name twice is found in the
-            // central directory itself.
-            if let Some(name) = zip_duplicate_name(body) {
-                return Err(bad(format!(
-                    "archive entry names unique, got {} twice",
-                    crate::session::quoted_prefix(&name)
-                )));
-            }
-            let mut ar = zip::ZipArchive::new(std::io::Cursor::new(body))
-                .map_err(|e| bad(format!("not a readable zip archive: {e}")))?;
-            for i in 0..ar.len() {
-                let mut f = ar
-                    .by_index(i)
-                    .map_err(|e| bad(format!("zip entry {i} is unreadable: {e}")))?;
-                if !f.is_file() {
-                    continue;
-                }
-                let name = f
-                    .name()
-                    .map_err(|e| bad(format!("zip entry {i} has an invalid name: {e}")))?
-                    .to_string();
-                add(name, &mut f, &mut files)?;
-            }
-        }
-    }
-    Ok(files)
-}
-
-/// A name that the zip's central directory lists twice. Walks the directory from the
-/// end-of-central-directory record (the last one in the file; a zip64 directory, whose
-/// offset does not fit there, is left to the reader).
-fn zip_duplicate_name(body: &[u8]) -> Option<String> {
-    let le16 = |b: &[u8], i: usize| Some(u16::from_le_bytes([*b.get(i)?, *b.get(i + 1)?]) as usize);
-    let le32 = |b: &[u8], i: usize| {
-        Some(
-            u32::from_le_bytes([*b.get(i)?, *b.get(i + 1)?, *b.get(i + 2)?, *b.get(i + 3)?])
-                as usize,
-        )
-    };
-    let eocd = (0..=body.len().checked_sub(22)?)
-        .rev()
-        .take(22 + 65_535)
-        .find(|&i| body[i..].starts_with(b"PK\x05\x06"))?;
-    let (count, offset) = (le16(body, eocd + 10)?, le32(body, eocd + 16)?);
-    let mut at = offset;
-    let mut names = std::collections::HashSet::new();
-    for _ in 0..count {
-        if !body.get(at..)?.starts_with(b"PK\x01\x02") {
-            return None;
-        }
-        let (n, m, k) = (
-            le16(body, at + 28)?,
-            le16(body, at + 30)?,
-            le16(body, at + 32)?,
-        );
-        let name = String::from_utf8_lossy(body.get(at + 46..at + 46 + n)?).to_string();
-        if !names.insert(name.clone()) {
-            return Some(name);
-        }
-        at += 46 + n + m + k;
-    }
-    None
-}
-
-/// The manifest of an unpacked archive: `session.json` at the top or in one folder.
-/// Returns its bytes and the folder prefix image paths are relative to.
-fn find_manifest(files: &BTreeMap<String, Vec<u8>>) -> Option<(Vec<u8>, String)> {
-    let mut found: Vec<&String> = files
-        .keys()
-        .filter(|k| {
-            *k == "session.json" || (k.ends_with("/session.json") && k.matches('/').count() == 1)
-        })
-        .collect();
-    found.sort_by_key(|k| k.len());
-    let k = found.first()?;
-    let prefix = k.strip_suffix("session.json").unwrap_or("").to_string();
-    Some((files[*k].clone(), prefix))
-}
-
-/// Inspect every image of `files` named by the manifest. Nothing is written here.
+/// Inspect every staged image the manifest names (one image in memory at a time).
+/// Nothing is stored here.
 fn inspect_archive_images(
     session: &Session,
-    files: &BTreeMap<String, Vec<u8>>,
+    mut unpacked: Unpacked,
     prefix: &str,
     max_pixels: u64,
-) -> Result<Vec<(ImageSlot, ImageMeta, Vec<u8>)>, ApiError> {
+) -> Result<Vec<(ImageSlot, ImageMeta, Staged)>, ApiError> {
     let mut out = Vec::new();
     for slot in image_slots(session) {
-        let Some(bytes) = files.get(&format!("{prefix}{}", slot.path)) else {
+        let Some(staged) = unpacked.files.remove(&format!("{prefix}{}", slot.path)) else {
             continue;
         };
-        let meta = imageio::inspect(bytes, Some(slot.size), max_pixels)
+        let bytes = staged.read().map_err(ApiError::storage)?;
+        let meta = imageio::inspect(&bytes, Some(slot.size), max_pixels)
             .map_err(|e| image_error(e, &slot.field))?;
-        out.push((slot, meta, bytes.clone()));
+        out.push((slot, meta, staged));
     }
     Ok(out)
 }
 
-/// Write blobs (blocking) and then rows. Conflicting existing images were ruled out by the caller.
-async fn store_images(
+/// Move staged images to their content addresses (blocking) and return their rows.
+async fn commit_images(
     store: &Store,
-    session_id: &str,
-    images: Vec<(ImageSlot, ImageMeta, Vec<u8>)>,
-) -> Result<(), ApiError> {
+    images: Vec<(ImageSlot, ImageMeta, Staged)>,
+) -> Result<Vec<ImageRow>, ApiError> {
     let blobs = store.blobs.clone();
-    let rows = tokio::task::spawn_blocking(move || -> std::io::Result<Vec<ImageRow>> {
+    tokio::task::spawn_blocking(move || -> std::io::Result<Vec<ImageRow>> {
         images
             .into_iter()
-            .map(|(slot, meta, bytes)| {
-                let sha = blobs.put(&bytes)?;
+            .map(|(slot, meta, staged)| {
+                let bytes = staged.len as i64;
+                let sha = blobs.commit(staged)?;
                 Ok(ImageRow {
                     camera: slot.camera,
                     frame: slot.frame,
                     sha256: sha,
-                    bytes: bytes.len() as i64,
+                    bytes,
                     format: meta.format.to_string(),
                     width: meta.width as i64,
                     height: meta.height as i64,
@@ -370,11 +212,66 @@ async fn store_images(
     })
     .await
     .map_err(ApiError::internal)?
-    .map_err(ApiError::storage)?;
-    for r in &rows {
+    .map_err(ApiError::storage)
+}
+
+/// Blobs first (durable), then the rows. Conflicting existing images were ruled out by
+/// the caller.
+async fn store_images(
+    store: &Store,
+    session_id: &str,
+    images: Vec<(ImageSlot, ImageMeta, Staged)>,
+) -> Result<(), ApiError> {
+    for r in &commit_images(store, images).await? {
         store.insert_image(session_id, r).await?;
     }
     Ok(())
+}
+
+/// An archive upload's slot: at most `max_concurrent_archives` are read at once, the
+/// next is 503 `busy` with `Retry-After` (each holds a spool file and a blocking thread).
+fn archive_slot(state: &AppState) -> Result<tokio::sync::OwnedSemaphorePermit, ApiError> {
+    state
+        .archive_slots
+        .clone()
+        .try_acquire_owned()
+        .map_err(|_| {
+            ApiError::new(
+                StatusCode::SERVICE_UNAVAILABLE,
+                "busy",
+                format!(
+                    "at most {} archive uploads are read at once; retry later",
+                    state.config.max_concurrent_archives
+                ),
+            )
+        })
+}
+
+/// Spool and unpack an archive body (the caller holds an archive slot).
+async fn read_archive(
+    state: &AppState,
+    content_type: &str,
+    body: Body,
+) -> Result<Unpacked, ApiError> {
+    let cfg = &state.config;
+    let spooled = archive::spool(body, &state.store.blobs, cfg.max_archive_bytes as u64).await?;
+    let kind = ArchiveKind::of(content_type, &spooled.head).ok_or_else(|| {
+        ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!("Content-Type application/x-tar or application/zip (or application/octet-stream with a tar or zip body), got {content_type}"),
+        )
+        .field("Content-Type")
+    })?;
+    let limits = Limits {
+        total: cfg.max_archive_bytes as u64,
+        entry: cfg.max_image_bytes as u64,
+        manifest: cfg.max_manifest_bytes as u64,
+    };
+    let blobs = state.store.blobs.clone();
+    tokio::task::spawn_blocking(move || archive::unpack(kind, &spooled, &blobs, limits))
+        .await
+        .map_err(ApiError::internal)?
 }
 
 /// `POST /v1/sessions`: a JSON manifest, or a tar/zip archive with `session.json` and images.
@@ -382,16 +279,20 @@ pub async fn create(
     State(state): State<AppState>,
     AuthTenant(tenant): AuthTenant,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> Result<Response, ApiError> {
     let cfg = &state.config;
-    let (manifest_bytes, images) = if let Some(kind) = archive_kind(&headers, &body) {
-        let body2 = body.clone();
-        let max = cfg.max_archive_bytes;
-        let files = tokio::task::spawn_blocking(move || unpack(kind, &body2, max))
-            .await
-            .map_err(ApiError::internal)??;
-        let (manifest, prefix) = find_manifest(&files).ok_or_else(|| {
+    let ct = content_type(&headers);
+    let (manifest_bytes, images) = if ct == "application/json"
+        || ct.ends_with("+json")
+        || ct.is_empty()
+    {
+        let bytes = ApiError::read_body(body, cfg.max_manifest_bytes).await?;
+        (bytes.to_vec(), vec![])
+    } else if ArchiveKind::of(&ct, b"").is_some() || ct == "application/octet-stream" {
+        let _slot = archive_slot(&state)?;
+        let unpacked = read_archive(&state, &ct, body).await?;
+        let (manifest, prefix) = unpacked.manifest().ok_or_else(|| {
             ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
                 "invalid-archive",
@@ -402,22 +303,18 @@ pub async fn create(
         let session = parse_manifest(&manifest, cfg.max_manifest_bytes)?;
         let max_px = cfg.max_image_pixels;
         let images = tokio::task::spawn_blocking(move || {
-            inspect_archive_images(&session, &files, &prefix, max_px)
+            inspect_archive_images(&session, unpacked, &prefix, max_px)
         })
         .await
         .map_err(ApiError::internal)??;
         (manifest, images)
     } else {
-        let ct = content_type(&headers);
-        if !(ct == "application/json" || ct.ends_with("+json") || ct.is_empty()) {
-            return Err(ApiError::new(
-                StatusCode::UNSUPPORTED_MEDIA_TYPE,
-                "unsupported-media-type",
-                format!("Content-Type application/json (a manifest), application/x-tar or application/zip (an archive), got {ct}"),
-            )
-            .field("Content-Type"));
-        }
-        (body.to_vec(), vec![])
+        return Err(ApiError::new(
+            StatusCode::UNSUPPORTED_MEDIA_TYPE,
+            "unsupported-media-type",
+            format!("Content-Type application/json (a manifest), application/x-tar or application/zip (an archive), got {ct}"),
+        )
+        .field("Content-Type"));
     };
     let session = parse_manifest(&manifest_bytes, cfg.max_manifest_bytes)?;
     let text = String::from_utf8(manifest_bytes).map_err(|_| {
@@ -433,19 +330,7 @@ pub async fn create(
         crate::session::Method::Vanishing => "vanishing",
     };
     // Blobs first (durable), then the session and image rows.
-    let blobs = state.store.blobs.clone();
-    let pre: Vec<(ImageSlot, ImageMeta, Vec<u8>)> = images;
-    let pre = tokio::task::spawn_blocking(
-        move || -> std::io::Result<Vec<(ImageSlot, ImageMeta, Vec<u8>)>> {
-            for (_, _, b) in &pre {
-                blobs.put(b)?;
-            }
-            Ok(pre)
-        },
-    )
-    .await
-    .map_err(ApiError::internal)?
-    .map_err(ApiError::storage)?;
+    let rows = commit_images(&state.store, images).await?;
     let row = state
         .store
         .insert_session(
@@ -456,7 +341,9 @@ pub async fn create(
             check.as_deref(),
         )
         .await?;
-    store_images(&state.store, &row.id, pre).await?;
+    for r in &rows {
+        state.store.insert_image(&row.id, r).await?;
+    }
     let v = view(&state.store, &row, &session).await?;
     Ok((
         StatusCode::CREATED,
@@ -503,8 +390,9 @@ pub async fn put_image(
     State(state): State<AppState>,
     AuthTenant(tenant): AuthTenant,
     Path((id, camera, frame)): Path<(String, String, String)>,
-    body: Bytes,
+    body: Body,
 ) -> Result<Json<Value>, ApiError> {
+    let body = ApiError::read_body(body, state.config.max_image_bytes).await?;
     let row = session_or_404(&state.store, &tenant, &id).await?;
     let session = stored_session(&row)?;
     let all = image_slots(&session);
@@ -566,7 +454,15 @@ pub async fn put_image(
             .field("image"));
         }
     }
-    store_images(&state.store, &row.id, vec![(slot, meta, body.to_vec())]).await?;
+    let blobs = state.store.blobs.clone();
+    let staged = tokio::task::spawn_blocking(move || blobs.stage(&mut &body[..], u64::MAX))
+        .await
+        .map_err(ApiError::internal)?
+        .map_err(|e| match e {
+            StageError::Read(e) => ApiError::internal(e),
+            StageError::Store(e) => ApiError::storage(e),
+        })?;
+    store_images(&state.store, &row.id, vec![(slot, meta, staged)]).await?;
     let images = state.store.images(&row.id).await?;
     let stored = images
         .iter()
@@ -599,24 +495,22 @@ pub async fn archive(
     AuthTenant(tenant): AuthTenant,
     Path(id): Path<String>,
     headers: HeaderMap,
-    body: Bytes,
+    body: Body,
 ) -> Result<Json<Value>, ApiError> {
     let row = session_or_404(&state.store, &tenant, &id).await?;
     let session = stored_session(&row)?;
-    let kind = archive_kind(&headers, &body).ok_or_else(|| {
-        ApiError::new(
+    let ct = content_type(&headers);
+    if ArchiveKind::of(&ct, b"").is_none() && ct != "application/octet-stream" {
+        return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
             "unsupported-media-type",
-            "Content-Type application/x-tar or application/zip",
+            format!("Content-Type application/x-tar or application/zip, got {ct}"),
         )
-        .field("Content-Type")
-    })?;
-    let max = state.config.max_archive_bytes;
-    let body2 = body.clone();
-    let files = tokio::task::spawn_blocking(move || unpack(kind, &body2, max))
-        .await
-        .map_err(ApiError::internal)??;
-    let prefix = match find_manifest(&files) {
+        .field("Content-Type"));
+    }
+    let _slot = archive_slot(&state)?;
+    let unpacked = read_archive(&state, &ct, body).await?;
+    let prefix = match unpacked.manifest() {
         Some((m, prefix)) => {
             let theirs: Value = serde_json::from_slice(&m).map_err(|e| {
                 ApiError::new(
@@ -642,7 +536,7 @@ pub async fn archive(
     let max_px = state.config.max_image_pixels;
     let s2 = session.clone();
     let images =
-        tokio::task::spawn_blocking(move || inspect_archive_images(&s2, &files, &prefix, max_px))
+        tokio::task::spawn_blocking(move || inspect_archive_images(&s2, unpacked, &prefix, max_px))
             .await
             .map_err(ApiError::internal)??;
     if images.is_empty() {
@@ -660,9 +554,9 @@ pub async fn archive(
         .into_iter()
         .map(|i| ((i.camera, i.frame), i.sha256))
         .collect();
-    for (slot, _, bytes) in &images {
+    for (slot, _, staged) in &images {
         if let Some(sha) = existing.get(&(slot.camera.clone(), slot.frame)) {
-            if *sha != crate::store::blob::sha256_hex(bytes) {
+            if *sha != staged.sha256 {
                 return Err(ApiError::new(
                     StatusCode::CONFLICT,
                     "image-conflict",

@@ -226,13 +226,23 @@ pub async fn head_only_request(
     content_type: &str,
     content_length: usize,
 ) -> (u16, Value) {
-    use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let addr = s.base.trim_start_matches("http://");
-    let mut sock = tokio::net::TcpStream::connect(addr).await.unwrap();
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {key}\r\nContent-Type: {content_type}\r\nContent-Length: {content_length}\r\nConnection: close\r\n\r\n"
     );
-    sock.write_all(head.as_bytes()).await.unwrap();
+    let (status, _, body) = raw_request(s, head.as_bytes()).await;
+    (status, body)
+}
+
+/// Write `request` as raw bytes on a new connection and read one answer (to its
+/// Content-Length, or to the close). Returns the status, the response head and the
+/// JSON body (`Null` when the body is not JSON).
+pub async fn raw_request(s: &Server, request: &[u8]) -> (u16, String, Value) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let addr = s.base.trim_start_matches("http://");
+    let mut sock = tokio::net::TcpStream::connect(addr).await.unwrap();
+    // The server may answer (and close) before it has read everything.
+    let _ = sock.write_all(request).await;
     let mut buf = Vec::new();
     let read = tokio::time::timeout(Duration::from_secs(30), async {
         let mut chunk = [0u8; 4096];
@@ -260,18 +270,27 @@ pub async fn head_only_request(
         }
     })
     .await;
-    assert!(read.is_ok(), "no answer before the body was sent");
+    assert!(read.is_ok(), "no answer within 30 s");
     let text = String::from_utf8_lossy(&buf).to_string();
     let status: u16 = text
         .split_whitespace()
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or_else(|| panic!("no status line in {text:?}"));
-    let body = text
-        .split_once("\r\n\r\n")
-        .and_then(|(_, b)| serde_json::from_str(b).ok())
-        .unwrap_or(Value::Null);
-    (status, body)
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let body = serde_json::from_str(body).unwrap_or(Value::Null);
+    (status, head.to_string(), body)
+}
+
+/// Peak resident memory of a process so far (`VmHWM`), bytes.
+pub fn peak_rss(pid: u32) -> u64 {
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status")).unwrap();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .expect("VmHWM in /proc/PID/status")
+        * 1024
 }
 
 /// A tar archive of `(path, bytes)` entries, as a client would upload it.

@@ -1,0 +1,111 @@
+//! Event streams share one poller: a single task reads the newest event id from the
+//! database every [`POLL`] and publishes it; every open stream sleeps on that value and
+//! queries its own events only when something new was stored. So a thousand open
+//! dashboards cost one cheap query per tick, and events written by workers in other
+//! processes (which only the database connects) still arrive. Each tenant may hold at
+//! most `max_streams_per_tenant` streams; the next is 429.
+
+use super::error::ApiError;
+use crate::jobs::queue::Queue;
+use axum::http::StatusCode;
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::sync::watch;
+
+/// How often the poller reads the newest event id.
+pub const POLL: Duration = Duration::from_millis(250);
+
+pub struct EventHub {
+    latest: watch::Receiver<i64>,
+    open: Mutex<HashMap<String, usize>>,
+    cap: usize,
+}
+
+/// An open stream's place in its tenant's count, given back when the stream ends.
+pub struct StreamSlot {
+    hub: Arc<EventHub>,
+    tenant: String,
+    latest: watch::Receiver<i64>,
+    /// The newest id the poller had published when this stream last looked.
+    seen: i64,
+}
+
+impl EventHub {
+    /// Start the poller; it stops when `shutdown` turns true.
+    pub fn start(queue: Queue, cap: usize, mut shutdown: watch::Receiver<bool>) -> Arc<Self> {
+        let (tx, rx) = watch::channel(0i64);
+        tokio::spawn(async move {
+            loop {
+                if let Ok(id) = queue.last_event_id().await {
+                    tx.send_if_modified(|v| {
+                        let newer = id > *v;
+                        *v = (*v).max(id);
+                        newer
+                    });
+                }
+                tokio::select! {
+                    _ = tokio::time::sleep(POLL) => {}
+                    _ = shutdown.changed() => {}
+                }
+                if *shutdown.borrow() {
+                    break;
+                }
+            }
+        });
+        Arc::new(Self {
+            latest: rx,
+            open: Mutex::new(HashMap::new()),
+            cap,
+        })
+    }
+
+    /// A slot for one more stream of `tenant`, or 429 when it holds `cap` already.
+    pub fn open(self: &Arc<Self>, tenant: &str) -> Result<StreamSlot, ApiError> {
+        let mut open = self.open.lock().unwrap_or_else(|p| p.into_inner());
+        let n = open.entry(tenant.to_string()).or_insert(0);
+        if *n >= self.cap {
+            return Err(ApiError::new(
+                StatusCode::TOO_MANY_REQUESTS,
+                "too-many-streams",
+                format!(
+                    "at most {} open event streams per tenant; close one (or use /v1/events, one stream for every job)",
+                    self.cap
+                ),
+            ));
+        }
+        *n += 1;
+        let latest = self.latest.clone();
+        let seen = *latest.borrow();
+        Ok(StreamSlot {
+            hub: self.clone(),
+            tenant: tenant.to_string(),
+            latest,
+            seen,
+        })
+    }
+}
+
+impl StreamSlot {
+    /// Wait until the poller has seen an event newer than any this stream looked for
+    /// (events up to `seen` were committed before the stream's last query), or a minute
+    /// passes (the stream then looks anyway).
+    pub async fn changed(&mut self) {
+        let seen = self.seen;
+        let wait = self.latest.wait_for(|&v| v > seen);
+        let _ = tokio::time::timeout(Duration::from_secs(60), wait).await;
+        self.seen = *self.latest.borrow();
+    }
+}
+
+impl Drop for StreamSlot {
+    fn drop(&mut self) {
+        let mut open = self.hub.open.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(n) = open.get_mut(&self.tenant) {
+            *n = n.saturating_sub(1);
+            if *n == 0 {
+                open.remove(&self.tenant);
+            }
+        }
+    }
+}
