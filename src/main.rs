@@ -368,10 +368,13 @@ fn run() -> Result<i32> {
             let doc = rigcal::pipeline::run(&session, &DirSource(dir), &opts, &Silent)
                 .map_err(|c| anyhow!("cancelled at {}", c.0))?;
             match render(&doc, &session, format) {
-                Some(text) => println!("{text}"),
-                None => {
+                Ok(text) => println!("{text}"),
+                Err(rigcal::export::ExportError::NothingToExport) => {
                     println!("{}", serde_json::to_string_pretty(&doc)?);
                     eprintln!("error: nothing to export: the calibration {:?}", doc.status);
+                }
+                Err(rigcal::export::ExportError::Unrepresentable(why)) => {
+                    return Err(anyhow!("--format: {why}"));
                 }
             }
             Ok(doc.exit_code())

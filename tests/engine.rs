@@ -281,6 +281,76 @@ fn exports_state_their_convention() {
         .contains("<joint name=\"cam1_to_cam2\""));
 }
 
+/// Issue 24: ids that pass the identifier grammar but that YAML or XML would misread
+/// unquoted (`yes`, `1e5`, `null`, `a--b`, ...) come back intact from every export, read
+/// by real parsers (libyaml through serde_norway, roxmltree); what OpenCV's keys cannot
+/// hold is refused with the reason.
+#[test]
+fn exports_quote_hostile_but_valid_ids() {
+    use rigcal::export::{render, ExportError, Format};
+    let (manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    let text = serde_json::to_string(&manifest).unwrap();
+    let plain = parse_session(text.as_bytes()).unwrap();
+    let ids: Vec<String> = plain.cameras.iter().map(|c| c.id.clone()).collect();
+    let hostile = ["yes", "1e5", "null", "a--b", "0x1F", "NaN", "a.b_c-d", "x"];
+    for pair in hostile.chunks(ids.len().min(hostile.len())) {
+        let mut t = text.clone();
+        for (id, new) in ids.iter().zip(pair) {
+            t = t.replace(&format!("\"{id}\""), &format!("\"{new}\""));
+        }
+        let session = parse_session(t.as_bytes()).unwrap();
+        let doc = calibrate(&session, &CalibOptions::default());
+        let names: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+
+        let kalibr: serde_norway::Value =
+            serde_norway::from_str(&render(&doc, &session, Format::Kalibr).unwrap()).unwrap();
+        for (i, id) in names.iter().enumerate() {
+            assert_eq!(
+                kalibr[format!("cam{i}").as_str()]["rostopic"].as_str(),
+                Some(format!("/{id}/image_raw").as_str()),
+                "{kalibr:?}"
+            );
+        }
+
+        let urdf = render(&doc, &session, Format::Urdf).unwrap();
+        let xml = roxmltree::Document::parse(&urdf).unwrap_or_else(|e| panic!("{e}: {urdf}"));
+        let links: Vec<&str> = xml
+            .descendants()
+            .filter(|n| n.has_tag_name("link"))
+            .filter_map(|n| n.attribute("name"))
+            .collect();
+        for id in &names {
+            assert!(
+                links.contains(&format!("{id}_optical").as_str()),
+                "{links:?}"
+            );
+        }
+
+        let opencv_ok = names.iter().all(|id| {
+            id.starts_with(|c: char| c.is_ascii_alphabetic())
+                && id
+                    .chars()
+                    .all(|c| c.is_ascii_alphanumeric() || c == '_' || c == '-')
+        });
+        match render(&doc, &session, Format::Opencv) {
+            Ok(yaml) => {
+                assert!(opencv_ok, "{names:?} written as OpenCV keys");
+                // OpenCV's own directive line is not YAML 1.x; the rest is.
+                let body = yaml.split_once("---\n").unwrap().1;
+                let v: serde_norway::Value = serde_norway::from_str(body).unwrap();
+                for id in &names {
+                    assert!(v.get(format!("{id}_R").as_str()).is_some(), "{body}");
+                }
+            }
+            Err(ExportError::Unrepresentable(why)) => {
+                assert!(!opencv_ok, "{names:?}: {why}");
+                assert!(why.contains("OpenCV FileStorage key"), "{why}");
+            }
+            Err(e) => panic!("{e:?}"),
+        }
+    }
+}
+
 #[test]
 fn uncertainty_is_honest_and_the_estimate_reaches_the_cramer_rao_bound() {
     // 200 noisy trials of the paper's protocol at σ = 0.5 px.

@@ -148,6 +148,32 @@ async fn hostile_identifiers_are_refused_naming_the_field() {
     let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
     let body = expect_problem(r, 422, "invalid-field").await;
     assert_eq!(body["field"], "vehicle_id", "{body}");
+    // Finding 3: every other string of the manifest is bounded too, and an error about
+    // a huge value or key stays small.
+    let obs = good["frames"][0]["observations"]["cam1"].clone();
+    type Patch<'a> = Box<dyn Fn(&mut Value) + 'a>;
+    let patches: Vec<Patch> = vec![
+        Box::new(|m| m["scale"][0]["a"] = Value::String(long.clone())),
+        Box::new(|m| m["frames"][0]["observations"][long.as_str()] = obs.clone()),
+        Box::new(|m| {
+            m["frames"][0]["observations"]["cam1"][0]["point"] = Value::String(long.clone())
+        }),
+        Box::new(|m| m["frames"][0]["images"] = serde_json::json!({"cam1": long.clone()})),
+        Box::new(|m| m["reference_camera"] = Value::String(long.clone())),
+    ];
+    for patch in &patches {
+        let mut m = good.clone();
+        patch(&mut m);
+        let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
+        assert!([400, 422].contains(&r.status().as_u16()), "{}", r.status());
+        let text = r.text().await.unwrap();
+        assert!(
+            text.len() < 5000,
+            "{} bytes echoed: {}",
+            text.len(),
+            &text[..300]
+        );
+    }
     let mut m = good.clone();
     m["frames"][0]["observations"]["cam1"][0]["point"] = Value::String("p\"1".into());
     let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();

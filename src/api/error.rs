@@ -40,13 +40,16 @@ impl ApiError {
         Self {
             status,
             slug,
-            detail: detail.into(),
+            detail: crate::session::bounded(detail.into(), crate::session::MAX_DETAIL_LEN),
             field: None,
         }
     }
 
     pub fn field(mut self, field: impl Into<String>) -> Self {
-        self.field = Some(field.into());
+        self.field = Some(crate::session::bounded(
+            field.into(),
+            crate::session::MAX_FIELD_LEN,
+        ));
         self
     }
 

@@ -3,7 +3,7 @@
 use super::auth::AuthTenant;
 use super::error::ApiError;
 use super::AppState;
-use crate::export::{render, Format};
+use crate::export::{render, ExportError, Format};
 use crate::jobs::acceptance::judge;
 use crate::jobs::queue::{JobFilter, JobRow, JobView, STATUSES};
 use crate::jobs::JobOptions;
@@ -462,7 +462,7 @@ pub async fn result(
     };
     let name = format!("{:?}", format).to_lowercase();
     match render(&doc, &session, format) {
-        Some(out) => Ok((
+        Ok(out) => Ok((
             [
                 (header::CONTENT_TYPE, ct.to_string()),
                 (
@@ -473,11 +473,17 @@ pub async fn result(
             out,
         )
             .into_response()),
-        None => Err(ApiError::new(
+        Err(ExportError::NothingToExport) => Err(ApiError::new(
             StatusCode::CONFLICT,
             "nothing-to-export",
             format!("the calibration {} and has no extrinsics to export; see the JSON result for the reasons", doc.status.as_str()),
         )),
+        Err(ExportError::Unrepresentable(why)) => Err(ApiError::new(
+            StatusCode::UNPROCESSABLE_ENTITY,
+            "unexportable",
+            format!("format {name}: {why}"),
+        )
+        .field("format")),
     }
 }
 

@@ -25,10 +25,12 @@ pub struct InputError {
 }
 
 impl InputError {
+    /// Both parts are bounded (`bounded`): a field path can hold a map key of the
+    /// input, and a message can quote a value, and neither may echo megabytes back.
     pub fn new(field: impl Into<String>, expected: impl Into<String>) -> Self {
         Self {
-            field: field.into(),
-            expected: expected.into(),
+            field: bounded(field.into(), MAX_FIELD_LEN),
+            expected: bounded(expected.into(), MAX_DETAIL_LEN),
         }
     }
 }
@@ -88,6 +90,24 @@ pub fn check_point_id(field: &str, value: &str) -> Result<(), InputError> {
 
 /// A value as an error message shows it: quoted, escaped, and cut after 40 characters
 /// (a 20 MB id is not echoed back).
+/// Longest field path an error names.
+pub const MAX_FIELD_LEN: usize = 256;
+/// Longest error message.
+pub const MAX_DETAIL_LEN: usize = 2048;
+
+/// `s` cut to at most `max` bytes (at a character boundary) with the original length
+/// said, so that an error about a huge value stays small.
+pub fn bounded(s: String, max: usize) -> String {
+    if s.len() <= max {
+        return s;
+    }
+    let mut cut = max.saturating_sub(32);
+    while !s.is_char_boundary(cut) {
+        cut -= 1;
+    }
+    format!("{}… ({} bytes)", &s[..cut], s.len())
+}
+
 pub fn quoted_prefix(value: &str) -> String {
     let mut chars = value.chars();
     let head: String = chars.by_ref().take(40).collect();
