@@ -69,6 +69,10 @@ enum Command {
         /// undistorted plane (better corners under distortion).
         #[arg(long)]
         camera: Option<PathBuf>,
+        /// Threads for the tags of one image (default: the machine's cores; 1 to time a
+        /// single core).
+        #[arg(long)]
+        threads: Option<usize>,
     },
     /// Write a synthetic session and its ground truth (session.json, truth.json; the
     /// realistic hall presets also corners.json, every image's visible tag corners).
@@ -348,7 +352,15 @@ fn run() -> Result<i32> {
             images,
             target,
             camera,
-        } => detect_images(&images, &target, camera.as_deref()),
+            threads,
+        } => {
+            let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+            let threads = threads.unwrap_or(cores);
+            if !(1..=256).contains(&threads) {
+                return Err(anyhow!("--threads: 1 to 256, got {threads}"));
+            }
+            detect_images(&images, &target, camera.as_deref(), threads)
+        }
         Command::Calibrate {
             session,
             format,
@@ -759,6 +771,7 @@ fn detect_images(
     images: &[PathBuf],
     target: &std::path::Path,
     camera: Option<&std::path::Path>,
+    threads: usize,
 ) -> Result<i32> {
     use rigcal::detect::{detect_tags, DetectOptions};
     use rigcal::pipeline::detection::{decode_gray, DEFAULT_MAX_IMAGE_PIXELS};
@@ -799,7 +812,11 @@ fn detect_images(
                 let found = rigcal::detect::linetarget::detect_line_targets(&gray, lens);
                 serde_json::json!({ "line_targets": found })
             } else {
-                let d = detect_tags(&gray, &targets, camera.as_ref(), &DetectOptions::default())?;
+                let opts = DetectOptions {
+                    threads,
+                    ..DetectOptions::default()
+                };
+                let d = detect_tags(&gray, &targets, camera.as_ref(), &opts)?;
                 serde_json::to_value(&d).map_err(|e| e.to_string())?
             };
             Ok((v, start.elapsed().as_secs_f64() * 1e3))

@@ -13,6 +13,14 @@ conventions: pixel centres at integer coordinates (rigcal, OpenCV); the AprilTag
 library (pupil-apriltags) puts them at +0.5, which is subtracted. Corners are matched to
 the nearest true corner of the same id, so no detector is penalised for its corner order.
 Times are the detection call only (image already decoded), median per image.
+
+    python3 benches/peers/detect.py --capture DIR   # a rendered hall capture
+
+runs the same detectors on every image of a capture written by `rigcal synth --preset
+car-hall --images --out DIR` (dense 1080p JPEG scenes: AprilGrids and wall tags on
+textured walls), rigcal with `--threads 1` and with all cores, against the capture's
+corners.json: share of fully visible tags found, corners more than 1 px off (wrong),
+corner RMS of the others, median ms per image.
 """
 import argparse
 import json
@@ -40,6 +48,84 @@ def in_print(entry, tid):
     return t["first_id"] <= tid < t["first_id"] + t["rows"] * t["cols"]
 
 
+def capture_main(a):
+    """Every detector on every image of a rendered hall capture (see the docstring)."""
+    d = a.capture
+    session = json.load(open(os.path.join(d, "session.json")))
+    truth = json.load(open(os.path.join(d, "corners.json")))
+    tf = os.path.join(d, "targets.peer.json")
+    json.dump(session["targets"], open(tf, "w"))
+    cams = {c["id"]: c for c in session["cameras"]}
+    pupil = Detector(families="tag36h11", nthreads=1, quad_decimate=2.0, refine_edges=1)
+    params = cv2.aruco.DetectorParameters()
+    params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
+    aruco = cv2.aruco.ArucoDetector(
+        cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
+    results = {}
+    for threads in ["1", str(os.cpu_count() or 1)]:
+        name = f"rigcal ({threads} thread{'s' if threads != '1' else ''})"
+        for cam in cams:
+            entries = [e for e in truth if e["camera"] == cam]
+            cf = os.path.join(d, f"camera.{cam}.peer.json")
+            json.dump(cams[cam], open(cf, "w"))
+            cmd = [a.rigcal, "detect", "--target", tf, "--camera", cf, "--threads", threads]
+            cmd += [os.path.join(d, e["path"]) for e in entries]
+            out = json.loads(subprocess.run(cmd, capture_output=True, check=False).stdout)
+            out = out if isinstance(out, list) else [out]
+            for e, o in zip(entries, out):
+                pts = {p["point"]: (p["u"], p["v"]) for p in o.get("points", [])}
+                results[(e["path"], name)] = (pts, o.get("elapsed_ms", 0.0))
+    for e in truth:
+        img = cv2.imread(os.path.join(d, e["path"]), cv2.IMREAD_GRAYSCALE)
+        for name, det in [("pupil-apriltags", None), ("cv2.aruco subpix", None)]:
+            t = time.perf_counter()
+            if name == "pupil-apriltags":
+                found = [(r.tag_id, (r.corners - 0.5).tolist()) for r in pupil.detect(img)]
+            else:
+                corners, ids, _ = aruco.detectMarkers(img)
+                found = [] if ids is None else [
+                    (int(i), c.reshape(4, 2).tolist()) for i, c in zip(ids.flatten(), corners)]
+            ms = (time.perf_counter() - t) * 1e3
+            pts = {}
+            for tid, corners in found:
+                truths = [e["corners"].get(f"tag:{tid}:{k}") for k in range(4)]
+                if any(t is None for t in truths):
+                    continue
+                # Nearest true corner of the same tag: no detector is penalised for its
+                # corner order.
+                for c in corners:
+                    k = min(range(4), key=lambda k: np.hypot(*(np.array(c) - truths[k])))
+                    pts[f"tag:{tid}:{k}"] = tuple(c)
+            results[(e["path"], name)] = (pts, ms)
+    names = sorted({k[1] for k in results}, key=lambda n: (not n.startswith("rigcal"), n))
+    print(f"\n{'detector':<20} {'images':>6} {'tags':>6} {'found %':>8} {'wrong':>6} "
+          f"{'rms px':>8} {'med ms':>8}")
+    for name in names:
+        total = found = wrong = 0
+        err, ms = [], []
+        for e in truth:
+            pts, t = results[(e["path"], name)]
+            ms.append(t)
+            tags = {}
+            for k in e["corners"]:
+                tags.setdefault(k.rsplit(":", 1)[0], []).append(k)
+            for ks in tags.values():
+                if len(ks) == 4:
+                    total += 1
+                    found += all(k in pts for k in ks)
+            for k, (u, v) in e["corners"].items():
+                if k in pts:
+                    x = float(np.hypot(pts[k][0] - u, pts[k][1] - v))
+                    if x > 1.0:
+                        wrong += 1
+                    else:
+                        err.append(x)
+        rms = float(np.sqrt(np.mean(np.square(err)))) if err else float("nan")
+        print(f"{name:<20} {len(truth):>6} {total:>6} {100 * found / max(1, total):>8.2f} "
+              f"{wrong:>6} {rms:>8.4f} {statistics.median(ms):>8.1f}")
+    return 0
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--views", type=int, default=20)
@@ -49,8 +135,12 @@ def main():
     ap.add_argument("--dir", default=None, help="reuse/keep rendered views here")
     ap.add_argument("--only", default=None,
                     help="comma-separated detectors to run (default: all four)")
+    ap.add_argument("--capture", default=None,
+                    help="a hall capture written by `rigcal synth --images` (see above)")
     a = ap.parse_args()
     cv2.setNumThreads(1)
+    if a.capture:
+        return capture_main(a)
     d = a.dir or tempfile.mkdtemp(prefix="rigcal-detect-")
     if not os.path.exists(os.path.join(d, "truth.json")):
         subprocess.run([a.rigcal, "bench", "detect", "--views", str(a.views), "--width",

@@ -38,6 +38,10 @@ pub struct DetectOptions {
     /// accurate on them, at ~1-3 ms per such tag. Off, their corners are the edge
     /// measurement's (0.05-0.1 px RMS under ~40 px).
     pub whole_tag_fit: bool,
+    /// Threads for the per-tag work of one image (edge refinement, whole-tag fits). 1
+    /// where images are detected in parallel already (a job, `rigcal calibrate`); the
+    /// cores for one image on its own (`rigcal detect`).
+    pub threads: usize,
 }
 
 impl Default for DetectOptions {
@@ -45,8 +49,39 @@ impl Default for DetectOptions {
         Self {
             quads: quads::QuadOptions::default(),
             whole_tag_fit: true,
+            threads: 1,
         }
     }
+}
+
+/// `f` over `items` on up to `threads` scoped threads, results in the items' order.
+/// Items are dealt round-robin, so tags of one board (similar sizes, similar cost)
+/// spread over the threads.
+fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = threads.clamp(1, items.len().max(1));
+    if threads == 1 {
+        return items.iter().map(f).collect();
+    }
+    let f = &f;
+    let mut parts: Vec<Vec<(usize, R)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..threads)
+            .map(|t| {
+                scope.spawn(move || {
+                    (t..items.len())
+                        .step_by(threads)
+                        .map(|i| (i, f(&items[i])))
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+            .collect()
+    });
+    let mut out: Vec<(usize, R)> = parts.drain(..).flatten().collect();
+    out.sort_by_key(|(i, _)| *i);
+    out.into_iter().map(|(_, r)| r).collect()
 }
 
 /// One tag found in an image.
@@ -129,7 +164,9 @@ pub fn detect_tags(
         min_contrast: Some(opts.quads.contrast_for(img)),
         ..opts.quads.clone()
     };
-    let mut candidates = quads::detect(img, &base)?;
+    let px = img.to_u8();
+    let (w, h) = (img.width, img.height);
+    let mut candidates = quads::detect_pixels(&px, w, h, &base)?;
     // Single tags have no layout to complete them from, and the decimated search loses
     // small oblique ones (9 in 10 of those missed among 120 views of 24-40 px tags at up
     // to 60° were found at full resolution): a full-resolution pass adds the ids the first
@@ -141,14 +178,20 @@ pub fn detect_tags(
         };
         let first: std::collections::BTreeSet<u32> = candidates.iter().map(|c| c.id).collect();
         candidates.extend(
-            quads::detect(img, &full)?
+            quads::detect_pixels(&px, w, h, &full)?
                 .into_iter()
                 .filter(|c| !first.contains(&c.id)),
         );
     }
     let mut rejected = Vec::new();
-    let mut refined =
-        refine_candidates(img, candidates, lens, opts.quads.max_hamming, &mut rejected);
+    let mut refined = refine_candidates(
+        img,
+        candidates,
+        lens,
+        opts.quads.max_hamming,
+        opts.threads,
+        &mut rejected,
+    );
     // A board with no seed at all gets a second search, at full resolution on a copy
     // whose bright areas are grown by a pixel, for its ids only: Kalibr's crossing
     // squares touch every tag corner, and where blur and decimation keep the contact
@@ -171,13 +214,13 @@ pub fn detect_tags(
             ..base.clone()
         };
         let max_h = opts.quads.max_hamming;
-        let again: Vec<quads::Candidate> = quads::detect(img, &grown)?
+        let again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?
             .into_iter()
             .filter(|c| seedless.iter().any(|l| l.cell_of(c.id).is_some()))
             .collect();
         let mut second = Vec::new();
         let found: BTreeMap<u32, grid::Found> =
-            refine_candidates(img, again, lens, max_h, &mut second)
+            refine_candidates(img, again, lens, max_h, opts.threads, &mut second)
                 .into_iter()
                 .filter(|(id, f)| {
                     let reading = verify::read_tag(img, &f.refined.corners, lens, *id);
@@ -259,14 +302,18 @@ pub fn detect_tags(
             }
             let mut rej = Vec::new();
             let max_h = opts.quads.max_hamming;
-            let board: Vec<(u32, grid::Found, [Vec2; 4])> =
+            let completed: Vec<(u32, grid::Found)> =
                 grid::complete(img, layout, seeds, lens, max_h, &mut rej)
                     .into_iter()
-                    .map(|(id, f)| {
-                        let c = finish(id, &f, Some(layout));
-                        (id, f, c)
-                    })
                     .collect();
+            let fitted = par_map(&completed, opts.threads, |(id, f)| {
+                finish(*id, f, Some(layout))
+            });
+            let board: Vec<(u32, grid::Found, [Vec2; 4])> = completed
+                .into_iter()
+                .zip(fitted)
+                .map(|((id, f), c)| (id, f, c))
+                .collect();
             let corners: BTreeMap<u32, [Vec2; 4]> =
                 board.iter().map(|(id, _, c)| (*id, *c)).collect();
             let off = grid::inconsistent(layout, &corners, lens);
@@ -289,11 +336,13 @@ pub fn detect_tags(
                 .copied()
                 .filter(|id| ids.is_none_or(|l| l.contains(id)))
                 .collect();
-            for id in take {
-                if let Some(f) = refined.remove(&id) {
-                    let c = finish(id, &f, None);
-                    emit(name, id, &f, &c, None);
-                }
+            let found: Vec<(u32, grid::Found)> = take
+                .into_iter()
+                .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
+                .collect();
+            let fitted = par_map(&found, opts.threads, |(id, f)| finish(*id, f, None));
+            for ((id, f), c) in found.iter().zip(&fitted) {
+                emit(name, *id, f, c, None);
             }
         }
     }
@@ -360,22 +409,27 @@ fn refine_candidates(
     candidates: Vec<quads::Candidate>,
     lens: Lens,
     max_hamming: u32,
+    threads: usize,
     rejected: &mut Vec<Rejection>,
 ) -> BTreeMap<u32, grid::Found> {
     let mut count: BTreeMap<u32, usize> = BTreeMap::new();
     for c in &candidates {
         *count.entry(c.id).or_default() += 1;
     }
+    let (unique, repeated): (Vec<_>, Vec<_>) =
+        candidates.into_iter().partition(|c| count[&c.id] == 1);
+    for c in repeated {
+        rejected.push(Rejection {
+            id: c.id,
+            reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
+        });
+    }
+    let results = par_map(&unique, threads, |c| {
+        refine_candidate(img, c, lens, max_hamming)
+    });
     let mut refined = BTreeMap::new();
-    for c in candidates {
-        if count[&c.id] > 1 {
-            rejected.push(Rejection {
-                id: c.id,
-                reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
-            });
-            continue;
-        }
-        match refine_candidate(img, &c, lens, max_hamming) {
+    for (c, r) in unique.into_iter().zip(results) {
+        match r {
             Some(r) => {
                 refined.insert(
                     c.id,
