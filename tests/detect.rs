@@ -625,3 +625,27 @@ fn boards_cut_by_the_border_give_only_valid_observations() {
         "{inside_found}/{inside_total} tags well inside were found"
     );
 }
+
+/// The tags of one image detected on several threads (`rigcal detect`) are the same,
+/// bit for bit and in the same order, as on one (jobs): the threads only share out the
+/// per-tag work. A dense hall view: boards, wall tags, textured walls.
+#[test]
+fn threads_share_the_work_of_one_image_without_changing_it() {
+    use rigcal::synth::hall::{hall, Hall, Nuisance};
+    let h = hall("car-hall", 3, Some((1024, 576))).unwrap();
+    let n = Nuisance::default();
+    let jpeg = Hall::encode(&h.render(2, 1, &n, 11), &n).unwrap();
+    let img = Gray::from_dynamic(&image::load_from_memory(&jpeg).unwrap());
+    let camera = &h.cameras[1].1;
+    let run = |threads| {
+        let opts = DetectOptions {
+            threads,
+            ..DetectOptions::default()
+        };
+        serde_json::to_string(&detect_tags(&img, &h.targets, Some(camera), &opts).unwrap()).unwrap()
+    };
+    let one = run(1);
+    assert!(one.matches("\"tag:").count() > 40, "{one}");
+    assert_eq!(one, run(2));
+    assert_eq!(one, run(7));
+}
