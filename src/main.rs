@@ -117,6 +117,9 @@ enum Command {
         /// Lease of a claimed job, seconds (renewed every third of it).
         #[arg(long, env = "RIGCAL_LEASE_SECONDS", default_value_t = 30)]
         lease_seconds: u64,
+        /// Largest image decoded at detection, pixels: give the servers' value.
+        #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", default_value_t = rigcal::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS)]
+        max_image_pixels: u64,
     },
     /// API keys.
     Apikey {
@@ -171,7 +174,7 @@ struct ServeArgs {
     #[arg(long, env = "RIGCAL_MAX_MANIFEST_BYTES", default_value_t = 64 << 20)]
     max_manifest_bytes: usize,
     /// Largest image, pixels (checked from the header, before decoding).
-    #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", default_value_t = 50_000_000)]
+    #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", default_value_t = rigcal::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS)]
     max_image_pixels: u64,
     /// Archive uploads read at once; more are refused with 503 and Retry-After.
     #[arg(long, env = "RIGCAL_MAX_CONCURRENT_ARCHIVES", default_value_t = 4)]
@@ -435,6 +438,7 @@ fn run() -> Result<i32> {
             data_dir,
             workers,
             lease_seconds,
+            max_image_pixels,
         } => {
             if workers == 0 || workers > 64 || lease_seconds < 1 {
                 return Err(anyhow!(
@@ -446,6 +450,7 @@ fn run() -> Result<i32> {
                 WorkerConfig {
                     workers,
                     lease: Duration::from_secs(lease_seconds),
+                    max_image_pixels,
                     ..WorkerConfig::default()
                 },
             ))?;

@@ -402,3 +402,54 @@ async fn storage_failures_are_503_and_recover_without_restart() {
     let view = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
     assert_eq!(view["images_received"], 2, "{view}");
 }
+
+/// An image the upload accepted under `--max-image-pixels` is decoded at detection with
+/// the same budget (the worker used the default 50 MP whatever the server was told, and
+/// skipped it as too large).
+#[tokio::test]
+async fn detection_decodes_what_the_upload_accepted() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(
+        dir.path(),
+        &["--workers", "1", "--max-image-pixels", "60000000"],
+    );
+    let c = client(&key);
+    let (w, h) = (8000u32, 6400u32);
+    assert!(u64::from(w) * u64::from(h) > 50_000_000);
+    let sess = create_session(&c, &s, &image_session(1, w, h)).await;
+    let sid = sess["id"].as_str().unwrap().to_string();
+    let flat = image::GrayImage::from_pixel(w, h, image::Luma([128u8]));
+    let mut png_bytes = Vec::new();
+    image::DynamicImage::ImageLuma8(flat)
+        .write_to(
+            &mut std::io::Cursor::new(&mut png_bytes),
+            image::ImageFormat::Png,
+        )
+        .unwrap();
+    for cam in ["front", "rear"] {
+        let r = c
+            .put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/0")))
+            .header("content-type", "image/png")
+            .body(png_bytes.clone())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status().as_u16(), 200, "{}", r.text().await.unwrap());
+    }
+    let job = submit(&c, &s, &sid).await;
+    let id = job["id"].as_str().unwrap();
+    let done = wait_job(&c, &s, id, std::time::Duration::from_secs(120)).await;
+    assert_eq!(done["status"], "failed", "{done}");
+    let r = c
+        .get(s.url(&format!("/v1/jobs/{id}/result")))
+        .send()
+        .await
+        .unwrap();
+    let doc = r.text().await.unwrap();
+    assert!(
+        !doc.contains("pixels"),
+        "an accepted image was refused: {doc}"
+    );
+    assert!(doc.contains("images_skipped\":0"), "{doc}");
+}

@@ -64,7 +64,7 @@ impl Default for ServeConfig {
             max_manifest_bytes: 64 << 20,
             max_image_bytes: 64 << 20,
             max_archive_bytes: 1 << 30,
-            max_image_pixels: 50_000_000,
+            max_image_pixels: crate::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
             max_concurrent_archives: 4,
             header_timeout: Duration::from_secs(30),
             body_timeout: Duration::from_secs(60),
@@ -213,6 +213,7 @@ pub async fn start(
         WorkerConfig {
             workers: config.workers,
             lease: config.lease,
+            max_image_pixels: config.max_image_pixels,
             ..WorkerConfig::default()
         },
     );

@@ -29,6 +29,9 @@ pub struct WorkerConfig {
     pub poll: Duration,
     /// First retry delay; doubled per attempt.
     pub backoff: Duration,
+    /// Largest image decoded at detection: the same budget the upload was checked
+    /// against (`--max-image-pixels`), so an image the API accepted is never skipped.
+    pub max_image_pixels: u64,
 }
 
 impl Default for WorkerConfig {
@@ -38,6 +41,7 @@ impl Default for WorkerConfig {
             lease: Duration::from_secs(30),
             poll: Duration::from_millis(200),
             backoff: Duration::from_secs(2),
+            max_image_pixels: crate::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
         }
     }
 }
@@ -147,6 +151,7 @@ async fn run_job(
     let images = match store.images(&job.session_id).await {
         Ok(rows) => BlobSource {
             blobs: store.blobs.clone(),
+            max_pixels: cfg.max_image_pixels,
             by_slot: rows
                 .into_iter()
                 .map(|r| ((r.camera, r.frame), r.sha256))
@@ -326,6 +331,7 @@ pub async fn run_standalone(data_dir: &std::path::Path, cfg: WorkerConfig) -> an
 /// A session's uploaded images, read from the blob store by (camera, frame).
 struct BlobSource {
     blobs: BlobStore,
+    max_pixels: u64,
     by_slot: std::collections::HashMap<(String, i64), String>,
 }
 
@@ -338,5 +344,9 @@ impl ImageSource for BlobSource {
         self.blobs
             .get(sha)
             .map_err(|e| format!("stored image {sha} unreadable: {e}"))
+    }
+
+    fn max_pixels(&self) -> u64 {
+        self.max_pixels
     }
 }
