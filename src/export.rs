@@ -60,10 +60,21 @@ pub enum ExportError {
     Unrepresentable(String),
 }
 
-/// A YAML double-quoted scalar (a JSON string is one): a string in YAML 1.1 and 1.2
-/// whatever it holds.
+/// A YAML double-quoted scalar: a string in YAML 1.1 and 1.2 whatever it holds (quote
+/// and backslash escaped, control characters as `\uXXXX`).
 fn yaml_str(s: &str) -> String {
-    serde_json::to_string(s).unwrap_or_else(|_| "\"\"".into())
+    let mut out = String::with_capacity(s.len() + 2);
+    out.push('"');
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if c.is_control() => out.push_str(&format!("\\u{:04x}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
 }
 
 /// Text escaped for an XML attribute value in double quotes.

@@ -13,8 +13,17 @@ use std::time::Duration;
 
 /// Logs (tracing) to stderr; `RUST_LOG` overrides the default `info` for rigcal.
 fn init_logging() {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("rigcal=info,warn"));
+    let default = || tracing_subscriber::EnvFilter::new("rigcal=info,warn");
+    let filter = match std::env::var("RUST_LOG") {
+        Err(_) => default(),
+        Ok(spec) => tracing_subscriber::EnvFilter::try_new(&spec).unwrap_or_else(|e| {
+            // Logging still starts (at the default levels), and says why.
+            eprintln!(
+                "warning: RUST_LOG={spec:?} is not a log filter ({e}); using rigcal=info,warn"
+            );
+            default()
+        }),
+    };
     let _ = tracing_subscriber::fmt()
         .with_env_filter(filter)
         .with_writer(std::io::stderr)

@@ -90,6 +90,8 @@ pub fn ring_accuracy_images(noise_grey: &[f64], trials: usize, seed: u64) -> Vec
             &crate::pipeline::Silent,
         ) {
             Ok(doc) => doc,
+            // Only a cancellation ends a run without a document, and `Silent` never
+            // cancels: no trial is dropped here.
             Err(_) => return None,
         };
         Some((doc, truth))

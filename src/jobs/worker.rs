@@ -48,6 +48,8 @@ impl Default for WorkerConfig {
 
 /// Start `cfg.workers` workers on the current runtime. They run until the process ends.
 pub fn spawn(store: Store, metrics: Arc<Metrics>, cfg: WorkerConfig) {
+    // The host only labels the worker in the queue's lease records (`claimed_by`); a
+    // machine without HOSTNAME is labelled "local" rather than refused.
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
     for i in 0..cfg.workers {
         let name = format!(
