@@ -246,13 +246,73 @@ fn dlt_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
     Some(Pose::new(rot, trans))
 }
 
+/// Stopping and damping rules of [`damped_pose_fit`].
+#[derive(Clone, Copy, Debug)]
+pub struct PoseFitRules {
+    pub max_iterations: usize,
+    /// Damping increases tried per iteration before it gives up.
+    pub tries: usize,
+    /// Converged when the cost falls by less than this fraction (or the step is
+    /// shorter than `min_step`).
+    pub rel_decrease: f64,
+    pub min_step: f64,
+    pub min_lambda: f64,
+}
+
+/// Gauss–Newton with Levenberg damping over one pose, steps `pose.perturbed(δt, δω)`.
+/// `normal(pose)` gives the normal equations (JᵀJ, Jᵀr) there, `None` when they cannot
+/// be formed (the fit stops at the pose it has); `cost(pose)` the cost, `None` where it
+/// is undefined (such a step is refused like a worse one). One driver for every pose
+/// fit of the estimators, so damping and stopping are the same everywhere.
+pub fn damped_pose_fit(
+    init: Pose,
+    rules: &PoseFitRules,
+    normal: impl Fn(&Pose) -> Option<(Matrix6<f64>, Vector6<f64>)>,
+    cost: impl Fn(&Pose) -> Option<f64>,
+) -> Pose {
+    let mut pose = init;
+    let Some(mut c) = cost(&pose) else {
+        return init;
+    };
+    let mut lambda = 1e-3;
+    for _ in 0..rules.max_iterations {
+        let Some((h, g)) = normal(&pose) else {
+            return pose;
+        };
+        let mut improved = false;
+        for _ in 0..rules.tries {
+            let mut hd = h;
+            for i in 0..6 {
+                hd[(i, i)] += lambda * h[(i, i)].max(1e-12);
+            }
+            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else {
+                break;
+            };
+            let cand = pose.perturbed(
+                &Vec3::new(step[0], step[1], step[2]),
+                &Vec3::new(step[3], step[4], step[5]),
+            );
+            if let Some(cc) = cost(&cand).filter(|&cc| cc < c) {
+                let done =
+                    c - cc < rules.rel_decrease * c.max(1e-30) || step.norm() < rules.min_step;
+                pose = cand;
+                c = cc;
+                lambda = (lambda / 3.0).max(rules.min_lambda);
+                improved = !done;
+                break;
+            }
+            lambda *= 4.0;
+        }
+        if !improved {
+            break;
+        }
+    }
+    pose
+}
+
 /// Gauss–Newton with Levenberg damping on the pixel reprojection error.
 pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> Pose {
-    let cost = |pose: &Pose| reprojection_cost(camera, local, uv, pose);
-    let mut pose = init;
-    let mut c = cost(&pose);
-    let mut lambda = 1e-3;
-    for _ in 0..50 {
+    let normal = |pose: &Pose| {
         let mut h = Matrix6::zeros();
         let mut g = Vector6::zeros();
         for (x, m) in local.iter().zip(uv) {
@@ -268,35 +328,18 @@ pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> 
             h += j.transpose() * j;
             g += j.transpose() * r;
         }
-        let mut improved = false;
-        for _ in 0..10 {
-            let mut hd = h;
-            for i in 0..6 {
-                hd[(i, i)] += lambda * h[(i, i)].max(1e-12);
-            }
-            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else {
-                break;
-            };
-            let cand = pose.perturbed(
-                &Vec3::new(step[0], step[1], step[2]),
-                &Vec3::new(step[3], step[4], step[5]),
-            );
-            let cc = cost(&cand);
-            if cc < c {
-                let done = c - cc < 1e-14 * c.max(1e-30) || step.norm() < 1e-14;
-                pose = cand;
-                c = cc;
-                lambda = (lambda / 3.0).max(1e-12);
-                improved = !done;
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    pose
+        Some((h, g))
+    };
+    let rules = PoseFitRules {
+        max_iterations: 50,
+        tries: 10,
+        rel_decrease: 1e-14,
+        min_step: 1e-14,
+        min_lambda: 1e-12,
+    };
+    damped_pose_fit(init, &rules, normal, |pose| {
+        Some(reprojection_cost(camera, local, uv, pose))
+    })
 }
 
 #[cfg(test)]

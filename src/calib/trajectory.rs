@@ -600,22 +600,14 @@ fn refine_body(
     let step = |p: &Pose, d: &nalgebra::Vector6<f64>| {
         p.perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]))
     };
-    let cost = |r: &[f64]| r.iter().map(|x| x * x).sum::<f64>();
-    let mut pose = init;
-    let Some(mut r) = residuals(&pose) else {
-        return init;
-    };
-    let mut lambda = 1e-3;
-    for _ in 0..20 {
+    let normal = |pose: &Pose| {
+        let r = residuals(pose)?;
         let h = 1e-6;
         let mut jac = nalgebra::DMatrix::<f64>::zeros(r.len(), 6);
         for k in 0..6 {
             let mut d = nalgebra::Vector6::zeros();
             d[k] = h;
-            let (Some(a), Some(b)) = (residuals(&step(&pose, &d)), residuals(&step(&pose, &-d)))
-            else {
-                return pose;
-            };
+            let (a, b) = (residuals(&step(pose, &d))?, residuals(&step(pose, &-d))?);
             for i in 0..r.len() {
                 jac[(i, k)] = (a[i] - b[i]) / (2.0 * h);
             }
@@ -623,32 +615,21 @@ fn refine_body(
         let jt = jac.transpose();
         let g = &jt * nalgebra::DVector::from_column_slice(&r);
         let hess = &jt * &jac;
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut damped = hess.clone();
-            for i in 0..6 {
-                damped[(i, i)] += lambda * hess[(i, i)].max(1e-12);
-            }
-            let Some(delta) = damped.cholesky().map(|c| c.solve(&(-&g))) else {
-                break;
-            };
-            let d = nalgebra::Vector6::from_iterator(delta.iter().copied());
-            let cand = step(&pose, &d);
-            if let Some(rc) = residuals(&cand).filter(|rc| cost(rc) < cost(&r)) {
-                let done = cost(&r) - cost(&rc) < 1e-10 * cost(&r).max(1e-30);
-                pose = cand;
-                r = rc;
-                lambda = (lambda / 3.0).max(1e-9);
-                improved = !done;
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    pose
+        Some((
+            nalgebra::Matrix6::from_iterator(hess.iter().copied()),
+            nalgebra::Vector6::from_iterator(g.iter().copied()),
+        ))
+    };
+    let rules = pnp::PoseFitRules {
+        max_iterations: 20,
+        tries: 8,
+        rel_decrease: 1e-10,
+        min_step: 0.0,
+        min_lambda: 1e-9,
+    };
+    pnp::damped_pose_fit(init, &rules, normal, |p| {
+        residuals(p).map(|r| r.iter().map(|x| x * x).sum::<f64>())
+    })
 }
 
 /// An image's pose from the placed bodies it sees: fitted to all of them, then, while
