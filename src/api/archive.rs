@@ -29,6 +29,12 @@ pub enum ArchiveKind {
 }
 
 impl ArchiveKind {
+    /// Whether a body of this Content-Type may be an archive (octet-stream is decided by
+    /// its magic bytes, once they are read).
+    pub fn may_be(content_type: &str) -> bool {
+        content_type == "application/octet-stream" || Self::of(content_type, b"").is_some()
+    }
+
     /// From the Content-Type, or for `application/octet-stream` from the magic bytes
     /// (`head` is the first 512 bytes of the body, or all of it).
     pub fn of(content_type: &str, head: &[u8]) -> Option<Self> {
@@ -108,12 +114,13 @@ pub struct Unpacked {
 }
 
 impl Unpacked {
-    /// The manifest: `session.json` at the top, else in one folder. Returns its bytes
-    /// and the folder prefix image paths are relative to.
-    pub fn manifest(&self) -> Option<(Vec<u8>, String)> {
-        let (name, bytes) = self.manifests.iter().min_by_key(|(n, _)| n.len())?;
+    /// The manifest, taken out: `session.json` at the top, else in one folder. Returns
+    /// its bytes and the folder prefix image paths are relative to.
+    pub fn take_manifest(&mut self) -> Option<(Vec<u8>, String)> {
+        let at = (0..self.manifests.len()).min_by_key(|&i| self.manifests[i].0.len())?;
+        let (name, bytes) = self.manifests.swap_remove(at);
         let prefix = name.strip_suffix("session.json").unwrap_or("").to_string();
-        Some((bytes.clone(), prefix))
+        Some((bytes, prefix))
     }
 }
 

@@ -131,16 +131,16 @@ impl ApiError {
 
 impl From<sqlx::Error> for ApiError {
     /// A database that cannot be read or written (I/O, a read-only or full disk, a file
-    /// that cannot be opened) is storage unavailable; anything else is internal.
+    /// that cannot be opened) is storage unavailable; anything else is internal. SQLite
+    /// says which by its result code (the primary code is the low byte of an extended
+    /// one): SQLITE_READONLY 8, SQLITE_IOERR 10, SQLITE_FULL 13, SQLITE_CANTOPEN 14.
     fn from(e: sqlx::Error) -> Self {
         let storage = match &e {
             sqlx::Error::Io(_) | sqlx::Error::PoolTimedOut => true,
-            sqlx::Error::Database(d) => {
-                let m = d.message().to_ascii_lowercase();
-                ["readonly", "disk", "i/o", "unable to open"]
-                    .iter()
-                    .any(|k| m.contains(k))
-            }
+            sqlx::Error::Database(d) => d
+                .code()
+                .and_then(|c| c.parse::<i32>().ok())
+                .is_some_and(|c| matches!(c & 0xff, 8 | 10 | 13 | 14)),
             _ => false,
         };
         if storage {

@@ -83,6 +83,10 @@ impl ProblemIo {
 
 /// The problem+json response for a bare hyper error response, `None` for anything else.
 pub fn rewrite_bare_error(buf: &[u8]) -> Option<Vec<u8>> {
+    // Every response head passes here: only error heads are read further.
+    if !(buf.starts_with(b"HTTP/1.1 4") || buf.starts_with(b"HTTP/1.1 5")) {
+        return None;
+    }
     let text = std::str::from_utf8(buf).ok()?;
     let head = text.strip_suffix("\r\n\r\n")?;
     if head.contains("\r\n\r\n") {

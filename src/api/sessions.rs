@@ -283,16 +283,17 @@ pub async fn create(
 ) -> Result<Response, ApiError> {
     let cfg = &state.config;
     let ct = content_type(&headers);
-    let (manifest_bytes, images) = if ct == "application/json"
+    let (manifest_bytes, session, images) = if ct == "application/json"
         || ct.ends_with("+json")
         || ct.is_empty()
     {
         let bytes = ApiError::read_body(body, cfg.max_manifest_bytes).await?;
-        (bytes.to_vec(), vec![])
-    } else if ArchiveKind::of(&ct, b"").is_some() || ct == "application/octet-stream" {
+        let session = parse_manifest(&bytes, cfg.max_manifest_bytes)?;
+        (bytes.to_vec(), session, vec![])
+    } else if ArchiveKind::may_be(&ct) {
         let _slot = archive_slot(&state)?;
-        let unpacked = read_archive(&state, &ct, body).await?;
-        let (manifest, prefix) = unpacked.manifest().ok_or_else(|| {
+        let mut unpacked = read_archive(&state, &ct, body).await?;
+        let (manifest, prefix) = unpacked.take_manifest().ok_or_else(|| {
             ApiError::new(
                 StatusCode::UNPROCESSABLE_ENTITY,
                 "invalid-archive",
@@ -302,12 +303,13 @@ pub async fn create(
         })?;
         let session = parse_manifest(&manifest, cfg.max_manifest_bytes)?;
         let max_px = cfg.max_image_pixels;
+        let s2 = session.clone();
         let images = tokio::task::spawn_blocking(move || {
-            inspect_archive_images(&session, unpacked, &prefix, max_px)
+            inspect_archive_images(&s2, unpacked, &prefix, max_px)
         })
         .await
         .map_err(ApiError::internal)??;
-        (manifest, images)
+        (manifest, session, images)
     } else {
         return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
@@ -316,7 +318,6 @@ pub async fn create(
         )
         .field("Content-Type"));
     };
-    let session = parse_manifest(&manifest_bytes, cfg.max_manifest_bytes)?;
     let text = String::from_utf8(manifest_bytes).map_err(|_| {
         ApiError::new(
             StatusCode::BAD_REQUEST,
@@ -500,7 +501,7 @@ pub async fn archive(
     let row = session_or_404(&state.store, &tenant, &id).await?;
     let session = stored_session(&row)?;
     let ct = content_type(&headers);
-    if ArchiveKind::of(&ct, b"").is_none() && ct != "application/octet-stream" {
+    if !ArchiveKind::may_be(&ct) {
         return Err(ApiError::new(
             StatusCode::UNSUPPORTED_MEDIA_TYPE,
             "unsupported-media-type",
@@ -509,8 +510,8 @@ pub async fn archive(
         .field("Content-Type"));
     }
     let _slot = archive_slot(&state)?;
-    let unpacked = read_archive(&state, &ct, body).await?;
-    let prefix = match unpacked.manifest() {
+    let mut unpacked = read_archive(&state, &ct, body).await?;
+    let prefix = match unpacked.take_manifest() {
         Some((m, prefix)) => {
             let theirs: Value = serde_json::from_slice(&m).map_err(|e| {
                 ApiError::new(
