@@ -35,14 +35,7 @@ async fn a_truncated_jpeg_is_refused_on_upload() {
         body["detail"].as_str().unwrap().contains("cut short"),
         "{body}"
     );
-    let view: Value = c
-        .get(s.url(&format!("/v1/sessions/{sid}")))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let view = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
     assert_eq!(view["images_received"], 0, "{view}");
     // The whole file is taken.
     let r = c
@@ -189,14 +182,7 @@ async fn hostile_identifiers_are_refused_naming_the_field() {
     m["scale"] = serde_json::json!([]);
     let r = c.post(s.url("/v1/sessions")).json(&m).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 201, "{}", r.text().await.unwrap());
-    let jobs: Value = c
-        .get(s.url("/v1/jobs"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let jobs = get_json(&c, &s, "/v1/jobs").await;
     assert_eq!(jobs["jobs"].as_array().map_or(0, |j| j.len()), 0, "{jobs}");
     // Tenants too.
     let out = std::process::Command::new(BIN)
@@ -292,14 +278,7 @@ async fn archives_with_duplicate_entries_are_refused() {
         let p = expect_problem(r, 422, "invalid-archive").await;
         assert!(p["detail"].as_str().unwrap().contains(entry), "{what}: {p}");
     }
-    let jobs: Value = c
-        .get(s.url("/v1/jobs"))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let jobs = get_json(&c, &s, "/v1/jobs").await;
     assert_eq!(jobs["jobs"].as_array().map_or(0, |j| j.len()), 0);
 }
 
@@ -338,14 +317,7 @@ async fn a_lost_blob_is_an_input_error_not_a_calibration_verdict() {
         view["images_missing"][0]["field"], "frames[0].images.rear",
         "{view}"
     );
-    let job = submit(&c, &s, &sid).await;
-    let done = wait_job(
-        &c,
-        &s,
-        job["id"].as_str().unwrap(),
-        std::time::Duration::from_secs(60),
-    )
-    .await;
+    let done = run_job(&c, &s, &sid, std::time::Duration::from_secs(60)).await;
     assert_eq!(done["status"], "failed", "{done}");
     assert_eq!(done["error"]["code"], "input_missing", "{done}");
     assert!(
@@ -437,9 +409,8 @@ async fn detection_decodes_what_the_upload_accepted() {
             .unwrap();
         assert_eq!(r.status().as_u16(), 200, "{}", r.text().await.unwrap());
     }
-    let job = submit(&c, &s, &sid).await;
-    let id = job["id"].as_str().unwrap();
-    let done = wait_job(&c, &s, id, std::time::Duration::from_secs(120)).await;
+    let done = run_job(&c, &s, &sid, std::time::Duration::from_secs(120)).await;
+    let id = done["id"].as_str().unwrap();
     assert_eq!(done["status"], "failed", "{done}");
     let r = c
         .get(s.url(&format!("/v1/jobs/{id}/result")))

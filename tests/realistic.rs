@@ -124,17 +124,16 @@ async fn a_rendered_hall_capture_calibrates_through_the_service() {
     assert_eq!(r.status().as_u16(), 201);
     let v: Value = r.json().await.unwrap();
     assert_eq!(v["images_received"], 72, "{v}");
-    let job = submit(&c, &s, v["id"].as_str().unwrap()).await;
-    let done = wait_job(
+    let done = run_job(
         &c,
         &s,
-        job["id"].as_str().unwrap(),
+        v["id"].as_str().unwrap(),
         std::time::Duration::from_secs(300),
     )
     .await;
     assert_eq!(done["status"], "succeeded", "{done}");
     let doc: ResultDocument = c
-        .get(s.url(&format!("/v1/jobs/{}/result", job["id"].as_str().unwrap())))
+        .get(s.url(&format!("/v1/jobs/{}/result", done["id"].as_str().unwrap())))
         .send()
         .await
         .unwrap()

@@ -214,6 +214,17 @@ pub fn crc32(data: &[u8]) -> u32 {
     !c
 }
 
+/// Submit a job for the session and wait for it to end: the finished job.
+pub async fn run_job(
+    c: &reqwest::Client,
+    s: &Server,
+    session_id: &str,
+    timeout: Duration,
+) -> Value {
+    let job = submit(c, s, session_id).await;
+    wait_job(c, s, job["id"].as_str().unwrap(), timeout).await
+}
+
 /// Send only the head of a request announcing `content_length` body bytes, then read the
 /// answer: how a server that refuses an oversized body by its declared length is seen
 /// without racing the upload against the refusal (a client still writing may see the
