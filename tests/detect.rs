@@ -349,14 +349,14 @@ fn image_session(dir: &std::path::Path) -> (std::path::PathBuf, Pose) {
     let back = nalgebra::Matrix3::from_diagonal(&Vec3::new(-1.0, -1.0, 1.0));
     let world_from_rear_board = Pose::new(back, Vec3::new(0.2 + side / 2.0, side / 2.0, -1.6));
     let layouts = [
-        rigcal::detect::board::GridLayout {
+        rigcal::target::board::GridLayout {
             rows: 6,
             cols: 6,
             tag_size: TAG,
             spacing: 0.3,
             first_id: 0,
         },
-        rigcal::detect::board::GridLayout {
+        rigcal::target::board::GridLayout {
             rows: 6,
             cols: 6,
             tag_size: TAG,
@@ -507,8 +507,8 @@ fn bad_images_are_skipped_and_reported() {
 /// corners are all well inside are found.
 #[test]
 fn boards_cut_by_the_border_give_only_valid_observations() {
-    use rigcal::detect::board::GridLayout;
     use rigcal::detect::BORDER_MARGIN;
+    use rigcal::target::board::GridLayout;
     let (w, h) = (640u32, 480u32);
     let layout = GridLayout {
         rows: 6,

@@ -2,7 +2,6 @@
 //! rig camera's own target, every auxiliary image's pair) and oblique views through
 //! distorting lenses. Corners, line points and vanishing points against the truth.
 
-use rigcal::calib::vanishing::target::{LineTarget, LINES, X_GROUP, Z_GROUP};
 use rigcal::detect::gray::Gray;
 use rigcal::detect::linetarget::{detect_line_targets, LineTargetDetection};
 use rigcal::detect::refine::Lens;
@@ -10,6 +9,7 @@ use rigcal::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use rigcal::synth::render::RenderOptions;
 use rigcal::synth::ring::{aux_camera, render_line_targets, rig_camera, table2_scene, TARGET};
 use rigcal::synth::tagscene::Lens as SynthLens;
+use rigcal::target::line_target::{LineTarget, LINES, X_GROUP, Z_GROUP};
 
 fn opts(seed: u64, noise: f64) -> RenderOptions {
     RenderOptions {

@@ -10,7 +10,7 @@ use super::error::ApiError;
 use super::AppState;
 use crate::calib::check::capture_check;
 use crate::imageio::{self, ImageError, ImageMeta};
-use crate::pipeline::undetected_images;
+use crate::session::undetected_images;
 use crate::session::{image_slots, parse_session, ImageSlot, InputError, Session};
 use crate::store::blob::{StageError, Staged};
 use crate::store::{rfc3339, ImageRow, SessionRow, Store, Tenant};

@@ -77,7 +77,7 @@ pub struct Observable {
 
 pub fn observable(session: &Session, truth: &Truth, sigma: f64) -> Option<Observable> {
     let (cams, info) = truth_information(session, truth, sigma)?;
-    let eig = crate::solver::eigen::symmetric_eigen(&info);
+    let eig = crate::linalg::symmetric_eigen(&info);
     let max = eig.eigenvalues.max();
     let n = info.nrows();
     let mut projector = DMatrix::zeros(n, n);

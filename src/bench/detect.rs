@@ -176,7 +176,7 @@ pub fn cell_params(cell: &Cell, i: usize, seed: u64) -> SceneParams {
 fn tag_in_print(s: &crate::synth::tagscene::TagScene, id: u32) -> bool {
     s.targets
         .iter()
-        .filter_map(crate::detect::board::GridLayout::of)
+        .filter_map(crate::target::board::GridLayout::of)
         .any(|g| g.cell_of(id).is_some())
 }
 

@@ -9,8 +9,8 @@
 
 use super::motion::{classify, MotionClass, MotionReport};
 use super::trajectory::{self, Trajectories};
-use crate::pipeline::undetected_images;
 use crate::result::{ObservableDof, Reason};
+use crate::session::undetected_images;
 use crate::session::Session;
 use crate::solver::bundle::LmOptions;
 use serde::Serialize;

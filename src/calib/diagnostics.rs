@@ -30,7 +30,7 @@ fn is_unobservable(l: f64, lmax: f64, decision_sigma: f64) -> bool {
 /// Unit directions of the joint extrinsic space that the information `info` (unit
 /// pixel noise) does not determine at pixel noise `decision_sigma`.
 pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<f64>> {
-    let eig = crate::solver::eigen::symmetric_eigen(info);
+    let eig = crate::linalg::symmetric_eigen(info);
     let lmax = eig.eigenvalues.amax().max(1e-300);
     (0..info.nrows())
         .filter(|&k| is_unobservable(eig.eigenvalues[k], lmax, decision_sigma))
@@ -146,7 +146,7 @@ pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observabil
     let keep = held
         .iter()
         .fold(DMatrix::identity(n, n), |p, s| p - s * s.transpose());
-    let eig = crate::solver::eigen::symmetric_eigen(&(&keep * &sym * &keep));
+    let eig = crate::linalg::symmetric_eigen(&(&keep * &sym * &keep));
     let lmax = eig.eigenvalues.amax().max(1e-300);
     let sigma = if ba.sigma_px.is_finite() {
         ba.sigma_px.max(sigma_floor_px)
@@ -177,7 +177,7 @@ pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observabil
     let per_camera_eigen = (0..cams.len())
         .map(|i| {
             let b = sym.view((6 * i, 6 * i), (6, 6)).into_owned();
-            let b = crate::solver::eigen::symmetric_eigen(&b);
+            let b = crate::linalg::symmetric_eigen(&b);
             let mut e: Vec<f64> = b.eigenvalues.iter().copied().collect();
             e.sort_by(|a, b| b.total_cmp(a));
             e

@@ -155,7 +155,7 @@ fn general_rotation(pairs: &[(Pose, Pose)], stats: &mut (usize, usize, usize)) -
     for (i, blk) in l.iter().enumerate() {
         m.view_mut((9 * i, 0), (9, 9)).copy_from(blk);
     }
-    let v = super::pnp::null_vector(&m)
+    let v = crate::linalg::null_vector(&m)
         .unwrap_or_else(|| DVector::from_row_slice(Mat3::identity().transpose().as_slice()));
     let vm = Mat3::from_row_slice(v.as_slice());
     let det = vm.determinant();
@@ -550,7 +550,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         }
         match ata.clone().cholesky() {
             Some(ch) => ch.solve(&atb),
-            None => crate::solver::bundle::symmetric_pseudo_inverse(&ata, 1e-12) * &atb,
+            None => crate::linalg::symmetric_pseudo_inverse(&ata, 1e-12) * &atb,
         }
     };
 

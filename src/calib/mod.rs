@@ -10,8 +10,8 @@ pub mod trajectory;
 pub mod twoview;
 pub mod vanishing;
 
-use crate::session::PointKind;
-use crate::solver::bundle::PointRef;
+use crate::session::{PointKind, Session};
+use crate::solver::bundle::{DistanceConstraint, PointRef};
 use std::collections::HashMap;
 
 /// Where session point `p` sits in a bundle problem whose free points and rigid bodies
@@ -29,4 +29,23 @@ pub(crate) fn point_ref(
             .get(&body)
             .map(|&b| PointRef::Body { body: b, local }),
     }
+}
+
+/// The session's measured distances whose two points `point_ref` can place.
+pub(crate) fn distance_constraints(
+    session: &Session,
+    point_ref: impl Fn(usize) -> Option<PointRef>,
+) -> Vec<DistanceConstraint> {
+    session
+        .distances
+        .iter()
+        .filter_map(|d| {
+            Some(DistanceConstraint {
+                a: point_ref(d.a)?,
+                b: point_ref(d.b)?,
+                distance: d.distance,
+                sigma: d.sigma,
+            })
+        })
+        .collect()
 }

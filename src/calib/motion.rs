@@ -60,7 +60,7 @@ pub fn common_axis<'a>(rots: impl Iterator<Item = &'a Mat3>) -> (Vec3, f64) {
         let d = r - Mat3::identity();
         m += d.transpose() * d;
     }
-    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&m);
+    let (values, vectors) = crate::linalg::symmetric_eigen3(&m);
     (vectors.column(values.imin()).into(), values.max())
 }
 
@@ -86,7 +86,7 @@ pub fn classify(motions: &[Pose]) -> MotionReport {
         a += i_r.transpose() * i_r;
         b += i_r.transpose() * t_perp;
     }
-    let c = crate::solver::bundle::symmetric_pseudo_inverse(
+    let c = crate::linalg::symmetric_pseudo_inverse(
         &nalgebra::DMatrix::from_column_slice(3, 3, a.as_slice()),
         1e-9,
     ) * nalgebra::DVector::from_column_slice(b.as_slice());

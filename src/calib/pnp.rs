@@ -2,39 +2,11 @@
 //! DLT otherwise, both on undistorted normalised coordinates, then Levenberg–Marquardt
 //! on the pixel reprojection error with the full camera model.
 
+use crate::geometry::homography::homography;
+use crate::geometry::plane::{is_planar, principal_axes};
 use crate::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
+use crate::linalg::null_vector;
 use nalgebra::{DMatrix, Matrix3x4, Matrix6, Vector6};
-
-/// Coplanarity test: the smallest principal extent is below 1e-6 of the largest.
-pub fn is_planar(pts: &[Vec3]) -> bool {
-    if pts.len() < 4 {
-        return true;
-    }
-    let (_, _, sv) = principal_axes(pts);
-    sv[2] <= 1e-6 * sv[0].max(1e-300)
-}
-
-/// Centroid, principal axes (columns, right-handed) and singular values of a point set.
-pub fn principal_axes(pts: &[Vec3]) -> (Vec3, Mat3, Vec3) {
-    let c = pts.iter().sum::<Vec3>() / pts.len() as f64;
-    let mut cov = Mat3::zeros();
-    for p in pts {
-        let d = p - c;
-        cov += d * d.transpose();
-    }
-    let (values, vectors) = crate::solver::eigen::symmetric_eigen3(&cov);
-    let mut order = [0usize, 1, 2];
-    order.sort_by(|&a, &b| values[b].total_cmp(&values[a]));
-    let e1: Vec3 = vectors.column(order[0]).into();
-    let e2: Vec3 = vectors.column(order[1]).into();
-    let e3 = e1.cross(&e2);
-    let sv = Vec3::new(
-        values[order[0]].max(0.0).sqrt(),
-        values[order[1]].max(0.0).sqrt(),
-        values[order[2]].max(0.0).sqrt(),
-    );
-    (c, Mat3::from_columns(&[e1, e2, e3]), sv)
-}
 
 /// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
 pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
@@ -163,51 +135,6 @@ fn planar_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
     let (r1, r2) = (h1 * s, h2 * s);
     let rot = so3::project_to_so3(&Mat3::from_columns(&[r1, r2, r1.cross(&r2)]));
     Some(Pose::new(rot, h3 * s) * plane_from_local)
-}
-
-/// Hartley-normalised DLT homography `x ~ H a`.
-pub fn homography(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
-    let (ta, na) = normalizer(a);
-    let (tx, nx) = normalizer(x);
-    let mut m = DMatrix::zeros(2 * a.len(), 9);
-    for i in 0..a.len() {
-        let (p, q) = (na[i], nx[i]);
-        let row1 = [p.x, p.y, 1.0, 0.0, 0.0, 0.0, -q.x * p.x, -q.x * p.y, -q.x];
-        let row2 = [0.0, 0.0, 0.0, p.x, p.y, 1.0, -q.y * p.x, -q.y * p.y, -q.y];
-        for k in 0..9 {
-            m[(2 * i, k)] = row1[k];
-            m[(2 * i + 1, k)] = row2[k];
-        }
-    }
-    let v = null_vector(&m)?;
-    let hn = Mat3::from_row_slice(v.as_slice());
-    Some(tx.try_inverse()? * hn * ta)
-}
-
-/// Isotropic normalisation: centroid to the origin, mean distance √2.
-pub fn normalizer(p: &[Vec2]) -> (Mat3, Vec<Vec2>) {
-    let c = p.iter().sum::<Vec2>() / p.len() as f64;
-    let d = p.iter().map(|q| (q - c).norm()).sum::<f64>() / p.len() as f64;
-    let s = if d > 1e-300 {
-        std::f64::consts::SQRT_2 / d
-    } else {
-        1.0
-    };
-    let t = Mat3::new(s, 0.0, -s * c.x, 0.0, s, -s * c.y, 0.0, 0.0, 1.0);
-    (t, p.iter().map(|q| (q - c) * s).collect())
-}
-
-/// Right singular vector of the smallest singular value (via the 9×9 or 12×12 normal matrix).
-pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
-    let ata = m.transpose() * m;
-    let eig = crate::solver::eigen::symmetric_eigen(&ata);
-    let k = eig
-        .eigenvalues
-        .iter()
-        .enumerate()
-        .min_by(|a, b| a.1.total_cmp(b.1))?
-        .0;
-    Some(eig.eigenvectors.column(k).into_owned())
 }
 
 /// Direct linear transform of a 3×4 projection on normalised coordinates.

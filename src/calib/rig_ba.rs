@@ -12,9 +12,7 @@ use super::handeye::InitOutput;
 use super::trajectory::Trajectories;
 use crate::geometry::Vec2;
 use crate::session::Session;
-use crate::solver::bundle::{
-    BundleProblem, BundleSummary, DirectionPrior, DistanceConstraint, LmOptions, Obs,
-};
+use crate::solver::bundle::{BundleProblem, BundleSummary, DirectionPrior, LmOptions, Obs};
 use crate::solver::{robust_sigma, Loss};
 use nalgebra::{DMatrix, DVector};
 use std::collections::HashMap;
@@ -176,7 +174,7 @@ pub fn refine(
             }
         }
     }
-    let distances = DistanceConstraint::from_session(session, point_ref);
+    let distances = super::distance_constraints(session, point_ref);
     let base = rig_frames
         .iter()
         .position(|f| {

@@ -11,9 +11,10 @@
 //! bundle adjustment per scene over all its images.
 
 use super::{pnp, twoview};
+use crate::geometry::plane::is_planar;
 use crate::geometry::{Pose, Vec2, Vec3};
 use crate::session::{PointKind, Session};
-use crate::solver::bundle::{BundleProblem, DistanceConstraint, LmOptions, Obs};
+use crate::solver::bundle::{BundleProblem, LmOptions, Obs};
 use crate::solver::{median, robust_sigma};
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 
@@ -527,7 +528,7 @@ fn place_body(
         };
         own_rms.push((fit.cost / local.len() as f64).sqrt());
         candidates.push(cam_from_scene.inverse() * fit.pose);
-        if pnp::is_planar(local) {
+        if is_planar(local) {
             let other = pnp::refine_pose(cam, local, uv, pnp::mirrored(&fit.pose, local));
             candidates.push(cam_from_scene.inverse() * other);
         }
@@ -657,7 +658,7 @@ fn pose_from_bodies(
             .values()
             .flat_map(|(l, u)| l.iter().copied().zip(u.iter().copied()))
             .unzip();
-        if local.len() < 4 || !(pnp::is_planar(&local) || local.len() >= 6) {
+        if local.len() < 4 || !(is_planar(&local) || local.len() >= 6) {
             return None;
         }
         let fit = pnp::solve_pose(cam, &local, &uv)?;
@@ -728,7 +729,7 @@ fn grow(
                 continue;
             }
             let (local, uv) = known_points(obs, kinds, points, bodies);
-            if local.len() >= 6 || (local.len() >= 4 && pnp::is_planar(&local)) {
+            if local.len() >= 6 || (local.len() >= 4 && is_planar(&local)) {
                 let enough = local.len() * 2 >= obs.len() || local.len() >= RESECT_ENOUGH;
                 candidates.push((enough, local.len(), *key, local, uv));
             }
@@ -976,7 +977,7 @@ fn refine_scene(
             }
         }
     }
-    let distances = DistanceConstraint::from_session(session, point_ref);
+    let distances = super::distance_constraints(session, point_ref);
     let mut problem = BundleProblem {
         cameras: session.cameras.iter().map(|c| c.camera.clone()).collect(),
         rig_from_cam: vec![Pose::identity(); ncam],

@@ -2,8 +2,9 @@
 //! normalised eight-point algorithm, its decomposition with the chirality test, and
 //! linear multi-view triangulation. All inputs are undistorted normalised coordinates.
 
-use super::pnp::{normalizer, null_vector};
+use crate::geometry::homography::normalizer;
 use crate::geometry::{so3, Mat3, Pose, Vec2, Vec3};
+use crate::linalg::null_vector;
 use nalgebra::{DMatrix, Matrix4};
 
 /// `cam2_from_cam1` with a unit-norm translation, from ≥ 8 correspondences in general
@@ -76,11 +77,8 @@ pub fn triangulate(views: &[(Pose, Vec2)]) -> Option<Vec3> {
         let r2 = r2 / r2.norm().max(1e-300);
         a += r1 * r1.transpose() + r2 * r2.transpose();
     }
-    let eig = crate::solver::eigen::symmetric_eigen(&nalgebra::DMatrix::from_column_slice(
-        4,
-        4,
-        a.as_slice(),
-    ));
+    let eig =
+        crate::linalg::symmetric_eigen(&nalgebra::DMatrix::from_column_slice(4, 4, a.as_slice()));
     let k = eig
         .eigenvalues
         .iter()

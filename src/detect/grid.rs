@@ -6,12 +6,12 @@
 //! accepted tags (grid distance), in the undistorted plane when the camera is known, so
 //! lens distortion and slight board bending do not accumulate across the board.
 
-use super::board::GridLayout;
 use super::gray::Gray;
 use super::refine::{refine_quad, Lens, Refined};
 use super::verify::read_tag;
-use crate::calib::pnp::homography;
+use crate::geometry::homography::homography;
 use crate::geometry::{Mat3, Vec2, Vec3};
+use crate::target::board::GridLayout;
 use std::collections::BTreeMap;
 
 /// How far (px) a predicted side may be from the real one.

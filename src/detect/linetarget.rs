@@ -1,7 +1,7 @@
 //! Wu's line targets in images: the feature lines `l1..l6`, their supporting points, the
 //! corners `P1..P6` and the two vanishing points.
 //!
-//! The printed target is the L of [`crate::calib::vanishing::target`] filled dark on a
+//! The printed target is the L of [`crate::target::line_target`] filled dark on a
 //! light ground, so the six feature lines are the L's outline and are measured as edges
 //! (an edge-based equivalent of Steger's ridge points, which the issue allows): one
 //! profile per pixel of each side, the mid-level crossing on each, a total-least-squares
@@ -17,9 +17,9 @@
 
 use super::gray::Gray;
 use super::refine::{refine_polygon, Lens, SideSampling, FIT_BAND};
-use crate::calib::vanishing::target::{LINES, X_GROUP, Z_GROUP};
 use crate::geometry::line2::vanishing_direction;
 use crate::geometry::{Mat3, Vec2};
+use crate::target::line_target::{LINES, X_GROUP, Z_GROUP};
 use serde::Serialize;
 
 /// One line target found in an image.

@@ -9,19 +9,17 @@
 //! fitted in the undistorted plane so distortion does not bend them. Nothing is
 //! resampled.
 
-pub mod board;
 pub mod gray;
 mod grid;
 pub mod linetarget;
 pub mod quads;
 pub mod refine;
-pub mod tag36h11;
 pub mod tagfit;
 mod verify;
 
 use crate::geometry::{Camera, Vec2};
 use crate::session::TargetSpec;
-use board::GridLayout;
+use crate::target::board::GridLayout;
 use gray::Gray;
 use refine::{refine_quad, Lens};
 use serde::Serialize;
@@ -395,7 +393,7 @@ fn whole_tag_corners(
     }
     let surround = match layout {
         Some(l) => tagfit::Surround::Grid {
-            gap_cells: l.spacing * tag36h11::WIDTH_AT_BORDER as f64,
+            gap_cells: l.spacing * crate::target::tag36h11::WIDTH_AT_BORDER as f64,
         },
         None => tagfit::Surround::Single,
     };

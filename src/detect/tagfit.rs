@@ -15,11 +15,11 @@
 //! solved exactly at every step (variable projection); the Jacobian is analytic, from the
 //! blurred model's gradient and the pattern's motion (see [`jacobian`]).
 
-use super::board::cell_white;
 use super::gray::Gray;
 use super::refine::Lens;
-use crate::calib::pnp::homography;
+use crate::geometry::homography::homography;
 use crate::geometry::{normal_cdf, Mat3, Vec2, Vec3};
+use crate::target::board::cell_white;
 use nalgebra::{DMatrix, DVector, SMatrix, SVector};
 
 /// Tags whose shallowest extent across a side is under this many pixels are fitted

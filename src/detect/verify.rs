@@ -3,9 +3,9 @@
 
 use super::gray::Gray;
 use super::refine::Lens;
-use super::tag36h11::{BIT_CELLS, CODES, WIDTH_AT_BORDER};
-use crate::calib::pnp::homography;
+use crate::geometry::homography::homography;
 use crate::geometry::{Mat3, Vec2, Vec3};
+use crate::target::tag36h11::{BIT_CELLS, CODES, WIDTH_AT_BORDER};
 
 /// What the cells of a quad say.
 #[derive(Clone, Debug)]

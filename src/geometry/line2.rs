@@ -58,7 +58,7 @@ pub fn vanishing_direction(lines: &[Vec3], k: &Mat3) -> Option<Vec3> {
             m[(i, j)] = ln[j];
         }
     }
-    let svd = crate::solver::eigen::symmetric_eigen(&(m.transpose() * &m));
+    let svd = crate::linalg::symmetric_eigen(&(m.transpose() * &m));
     let i = svd.eigenvalues.imin();
     let d = Vec3::new(
         svd.eigenvectors[(0, i)],

@@ -5,7 +5,9 @@
 //! check every Jacobian against finite differences.
 
 pub mod camera;
+pub mod homography;
 pub mod line2;
+pub mod plane;
 pub mod pose;
 pub mod so3;
 

@@ -9,7 +9,7 @@ use crate::calib::rig_ba::{refine, RigBaOptions};
 use crate::calib::trajectory;
 use crate::geometry::{so3, Pose};
 use crate::result::*;
-use crate::session::{Method, Session};
+use crate::session::{undetected_images, Method, Session};
 use crate::solver::bundle::LmOptions;
 use std::time::Instant;
 
@@ -182,27 +182,6 @@ pub(crate) fn enter(progress: &dyn Progress, stage: &str) -> Result<(), Cancelle
     } else {
         Err(Cancelled(stage.to_string()))
     }
-}
-
-/// Images of the session that have no detections yet, as field paths
-/// (`frames[3].images.front`).
-pub fn undetected_images(session: &Session) -> Vec<String> {
-    let mut out = Vec::new();
-    for (fi, f) in session.manifest.frames.iter().enumerate() {
-        for cam in f.images.keys() {
-            let detected = f.observations.get(cam).is_some_and(|o| !o.is_empty())
-                || f.lines.get(cam).is_some_and(|l| !l.is_empty());
-            if !detected {
-                out.push(format!("frames[{fi}].images.{cam}"));
-            }
-        }
-    }
-    for (ri, r) in session.manifest.ring.iter().enumerate() {
-        if r.image.is_some() && r.lines.is_empty() {
-            out.push(format!("ring[{ri}].image"));
-        }
-    }
-    out
 }
 
 /// Run a session end to end: detection on the images that need it (read from

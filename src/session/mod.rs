@@ -8,7 +8,7 @@ mod validate;
 
 pub use lines::{LineObs, LineTargetDef, RingView, VanishingInput};
 pub use raw::*;
-pub use slots::{image_slots, ImageSlot};
+pub use slots::{image_slots, undetected_images, ImageSlot};
 pub use validate::{
     camera_from_spec, from_manifest, parse_session, resolve_points, PointKind, ResolvedPoints,
     Session,

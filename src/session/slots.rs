@@ -56,3 +56,24 @@ pub fn image_slots(session: &Session) -> Vec<ImageSlot> {
     }
     out
 }
+
+/// Images of the session that have no detections yet, as field paths
+/// (`frames[3].images.front`).
+pub fn undetected_images(session: &Session) -> Vec<String> {
+    let mut out = Vec::new();
+    for (fi, f) in session.manifest.frames.iter().enumerate() {
+        for cam in f.images.keys() {
+            let detected = f.observations.get(cam).is_some_and(|o| !o.is_empty())
+                || f.lines.get(cam).is_some_and(|l| !l.is_empty());
+            if !detected {
+                out.push(format!("frames[{fi}].images.{cam}"));
+            }
+        }
+    }
+    for (ri, r) in session.manifest.ring.iter().enumerate() {
+        if r.image.is_some() && r.lines.is_empty() {
+            out.push(format!("ring[{ri}].image"));
+        }
+    }
+    out
+}

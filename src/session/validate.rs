@@ -3,8 +3,8 @@
 use super::lines::{validate_vanishing, VanishingInput};
 use super::raw::*;
 use super::InputError;
-use crate::detect::board::{tag_corner, GridLayout};
 use crate::geometry::{Camera, CameraModel, Vec2, Vec3};
+use crate::target::board::{tag_corner, GridLayout};
 use std::collections::{BTreeMap, HashMap, HashSet};
 
 /// Largest accepted counts; beyond them a session is refused, not truncated.
@@ -345,7 +345,7 @@ fn points_planar(points: &BTreeMap<String, [f64; 3]>) -> bool {
         .values()
         .map(|p| Vec3::new(p[0], p[1], p[2]))
         .collect();
-    crate::calib::pnp::is_planar(&pts)
+    crate::geometry::plane::is_planar(&pts)
 }
 
 /// Validate a manifest already in memory (e.g. after the detection stage filled in

@@ -15,6 +15,7 @@
 use super::loss::Loss;
 use crate::geometry::so3::skew;
 use crate::geometry::{Camera, Mat3, Pose, Vec2, Vec3};
+use crate::linalg::symmetric_pseudo_inverse;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix6, SMatrix, Vector6};
 use std::time::Instant;
 
@@ -43,27 +44,6 @@ pub struct DistanceConstraint {
     pub b: PointRef,
     pub distance: f64,
     pub sigma: f64,
-}
-
-impl DistanceConstraint {
-    /// The session's measured distances whose two points `point_ref` can place.
-    pub fn from_session(
-        session: &crate::session::Session,
-        point_ref: impl Fn(usize) -> Option<PointRef>,
-    ) -> Vec<Self> {
-        session
-            .distances
-            .iter()
-            .filter_map(|d| {
-                Some(DistanceConstraint {
-                    a: point_ref(d.a)?,
-                    b: point_ref(d.b)?,
-                    distance: d.distance,
-                    sigma: d.sigma,
-                })
-            })
-            .collect()
-    }
 }
 
 /// A Gaussian prior on one direction of the extrinsics' tangent space at `origin`:
@@ -910,7 +890,7 @@ fn eliminate_block(
     if coupled * 8 >= s.nrows() {
         // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse).
         let sub = DMatrix::from_fn(ze, ze, |i, j| inv[(i, j)]);
-        let eig = super::eigen::symmetric_eigen(&sub);
+        let eig = crate::linalg::symmetric_eigen(&sub);
         for r in 0..ze {
             let l = eig.eigenvalues[r];
             if l <= 0.0 {
@@ -992,26 +972,6 @@ fn pseudo_inverse_block(h: &Matrix6<f64>, size: usize) -> Matrix6<f64> {
     for i in 0..size {
         for j in 0..size {
             out[(i, j)] = inv[(i, j)];
-        }
-    }
-    out
-}
-
-/// Pseudo-inverse of a symmetric positive semi-definite matrix; eigenvalues below
-/// `rel × λ_max` are treated as zero (their directions carry no information).
-pub fn symmetric_pseudo_inverse(m: &DMatrix<f64>, rel: f64) -> DMatrix<f64> {
-    let n = m.nrows();
-    if n == 0 {
-        return m.clone();
-    }
-    let eig = super::eigen::symmetric_eigen(m);
-    let lmax = eig.eigenvalues.amax();
-    let mut out = DMatrix::zeros(n, n);
-    for k in 0..n {
-        let l = eig.eigenvalues[k];
-        if l > rel * lmax && l > 0.0 {
-            let v = eig.eigenvectors.column(k);
-            out += v * v.transpose() / l;
         }
     }
     out

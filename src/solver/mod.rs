@@ -3,7 +3,6 @@
 //! information of chosen parameter blocks (for covariances and observability).
 
 pub mod bundle;
-pub mod eigen;
 pub mod loss;
 
 pub use bundle::{BundleProblem, BundleSummary, LmOptions, Obs, PointRef};

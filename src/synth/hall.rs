@@ -12,9 +12,9 @@
 use super::render::{quantise, render_field};
 use super::scene::{printed_tags, visible_corners, Paint, PrintedTag, Surface, View};
 use super::{camera_spec, look, planar_pose, Truth};
-use crate::detect::board::GridLayout;
 use crate::geometry::{so3, Camera, CameraModel, Mat3, Pose, Vec3};
 use crate::session::{FrameSpec, ObservationSpec, SessionManifest, TargetSpec};
+use crate::target::board::GridLayout;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};

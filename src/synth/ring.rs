@@ -9,9 +9,9 @@
 //! point gets Gaussian noise of `noise_px` on both coordinates.
 
 use super::{camera_spec, Truth};
-use crate::calib::vanishing::target::{LineTarget, LINES};
 use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use crate::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
+use crate::target::line_target::{LineTarget, LINES};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use std::collections::BTreeMap;

@@ -6,8 +6,8 @@
 //! are where the geometry puts them, whatever the clutter around them.
 
 use super::render::Hit;
-use crate::detect::board::{single_tag_shade, tag_corner, GridLayout};
 use crate::geometry::{Camera, Mat3, Pose, Vec2, Vec3};
+use crate::target::board::{single_tag_shade, tag_corner, GridLayout};
 
 /// What is printed or built on a surface, in surface coordinates (m).
 #[derive(Clone, Debug)]

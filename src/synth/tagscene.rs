@@ -2,9 +2,9 @@
 //! detector's accuracy tests, `rigcal bench detect` and the peers script.
 
 use super::render::{project_board, render, RenderOptions};
-use crate::detect::board::{single_tag_shade, tag_corner, GridLayout};
 use crate::geometry::{so3, Camera, CameraModel, Pose, Vec2, Vec3};
 use crate::session::TargetSpec;
+use crate::target::board::{single_tag_shade, tag_corner, GridLayout};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::collections::BTreeMap;

@@ -11,9 +11,9 @@
 //!
 //! Dense normal equations: a ring of 8 targets and 8 auxiliary views has 90 unknowns.
 
-use super::target::LineTarget;
 use crate::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use crate::solver::Loss;
+use crate::target::line_target::LineTarget;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix3};
 
 /// Points measured on one feature line in one view (undistorted pixels).

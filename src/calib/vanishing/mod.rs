@@ -9,15 +9,14 @@
 pub mod bundle;
 pub mod pose;
 pub mod ring;
-pub mod target;
 
 use crate::geometry::{Camera, Pose, Vec2};
 use crate::session::{LineObs, Session, VanishingInput};
 use crate::solver::Loss;
+use crate::target::line_target::{LineTarget, LINES};
 use bundle::{LineBundle, LinePoints, LineSummary};
 use pose::{estimate_view_pose, ideal_camera, undistort, ViewPose};
 use ring::{chain, fuse, propagate, Edges, Uncertain};
-use target::{LineTarget, LINES};
 
 #[derive(Clone, Debug)]
 pub struct VanishingOptions {

@@ -17,10 +17,10 @@
 //! every corner in front of the camera with the smallest corner reprojection error.
 
 use super::bundle::{LineBundle, LinePoints};
-use super::target::{LineTarget, LINES, X_GROUP, Z_GROUP};
 use crate::geometry::line2::{fit_line, intersect, vanishing_direction};
 use crate::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
 use crate::solver::Loss;
+use crate::target::line_target::{LineTarget, LINES, X_GROUP, Z_GROUP};
 use nalgebra::DMatrix;
 
 /// A line direction closer than this to the image plane puts its vanishing point "at

@@ -1,4 +1,5 @@
-//! Symmetric eigen-decomposition that can be trusted.
+//! Dense linear algebra the estimators share: a symmetric eigen-decomposition that can
+//! be trusted, and the pseudo-inverse and null vector built on it.
 //!
 //! nalgebra's `symmetric_eigen` (0.33) sometimes pairs an eigenvalue with the wrong
 //! eigenvector when two eigenvalues are (nearly) equal — dimforge/nalgebra#1109, still
@@ -90,6 +91,39 @@ fn jacobi(m: &DMatrix<f64>) -> SymmetricEigen<f64, Dyn> {
         eigenvalues: DVector::from_fn(n, |i, _| a[(i, i)]),
         eigenvectors: v,
     }
+}
+
+/// Pseudo-inverse of a symmetric positive semi-definite matrix; eigenvalues below
+/// `rel × λ_max` are treated as zero (their directions carry no information).
+pub fn symmetric_pseudo_inverse(m: &DMatrix<f64>, rel: f64) -> DMatrix<f64> {
+    let n = m.nrows();
+    if n == 0 {
+        return m.clone();
+    }
+    let eig = symmetric_eigen(m);
+    let lmax = eig.eigenvalues.amax();
+    let mut out = DMatrix::zeros(n, n);
+    for k in 0..n {
+        let l = eig.eigenvalues[k];
+        if l > rel * lmax && l > 0.0 {
+            let v = eig.eigenvectors.column(k);
+            out += v * v.transpose() / l;
+        }
+    }
+    out
+}
+
+/// Right singular vector of the smallest singular value (via the 9×9 or 12×12 normal matrix).
+pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
+    let ata = m.transpose() * m;
+    let eig = symmetric_eigen(&ata);
+    let k = eig
+        .eigenvalues
+        .iter()
+        .enumerate()
+        .min_by(|a, b| a.1.total_cmp(b.1))?
+        .0;
+    Some(eig.eigenvectors.column(k).into_owned())
 }
 
 #[cfg(test)]
