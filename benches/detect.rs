@@ -4,9 +4,9 @@
 //! detector's speed show. The image is rendered once per run (a few seconds).
 //! Medians over samples; see docs/performance.md.
 
-use rigcal::detect::gray::Gray;
-use rigcal::detect::{detect_tags, DetectOptions};
-use rigcal::synth::hall::{hall, Hall, Nuisance};
+use rigcal_detect::gray::Gray;
+use rigcal_detect::{detect_tags, DetectOptions};
+use rigcal_synth::hall::{hall, Hall, Nuisance};
 
 fn main() {
     divan::main();
@@ -20,6 +20,6 @@ fn dense_hall_image_1080p(bencher: divan::Bencher) {
     let img = Gray::from_dynamic(&image::load_from_memory(&jpeg).expect("decode"));
     let camera = &h.cameras[0].1;
     let opts = DetectOptions::default();
-    rigcal::detect::quads::warm_up(&opts.quads).expect("detector");
+    rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
     bencher.bench(|| detect_tags(&img, &h.targets, Some(camera), &opts).expect("detect"));
 }

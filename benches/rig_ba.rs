@@ -2,10 +2,10 @@
 //! (6 cameras, 100 points per scene) at K rig poses, and the full motion pipeline on the
 //! paper's protocol. Medians over samples; see docs/performance.md.
 
-use rigcal::bench::speed::problem;
-use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::session::parse_session;
-use rigcal::solver::bundle::LmOptions;
+use rigcal_bench::speed::problem;
+use rigcal_core::session::parse_session;
+use rigcal_engine::pipeline::{calibrate, CalibOptions};
+use rigcal_solve::bundle::LmOptions;
 
 fn main() {
     divan::main();
@@ -24,7 +24,7 @@ fn rig_bundle_adjustment(bencher: divan::Bencher, poses: usize) {
 
 #[divan::bench(sample_count = 20)]
 fn lebraly_protocol_end_to_end(bencher: divan::Bencher) {
-    let (manifest, _) = rigcal::synth::generate("lebraly-5.1", 1, 0.5).expect("preset");
+    let (manifest, _) = rigcal_synth::generate("lebraly-5.1", 1, 0.5).expect("preset");
     let session =
         parse_session(serde_json::to_string(&manifest).expect("json").as_bytes()).expect("valid");
     bencher.bench(|| calibrate(&session, &CalibOptions::default()));

@@ -1,16 +1,16 @@
 //! Per-scene body and image pose errors against a synthetic truth (a debugging aid):
 //! `cargo run --release --example debug_bodies -- DIR` (DIR holds session.json with
 //! observations and truth.json).
-use rigcal::geometry::{so3, Pose, Vec3};
-use rigcal::session::PointKind;
+use rigcal_core::geometry::{so3, Pose, Vec3};
+use rigcal_core::session::PointKind;
 
 fn main() {
     let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("dir"));
-    let s =
-        rigcal::session::parse_session(&std::fs::read(dir.join("session.json")).unwrap()).unwrap();
-    let truth: rigcal::synth::Truth =
+    let s = rigcal_core::session::parse_session(&std::fs::read(dir.join("session.json")).unwrap())
+        .unwrap();
+    let truth: rigcal_synth::Truth =
         serde_json::from_slice(&std::fs::read(dir.join("truth.json")).unwrap()).unwrap();
-    let t = rigcal::calib::trajectory::estimate(&s, &Default::default()).unwrap();
+    let t = rigcal_calib::trajectory::estimate(&s, &Default::default()).unwrap();
     // world_from_body of the truth, from three of its corners.
     let truth_body = |b: usize| -> Option<Pose> {
         let pts: Vec<(Vec3, Vec3)> = s

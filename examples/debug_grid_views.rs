@@ -2,9 +2,9 @@
 //! debugging aid): `cargo run --release --example debug_grid_views -- CELL VIEWS [SEED]`.
 //! Cells as `rigcal bench detect` numbers them: 0-2 single tags, 3-5 AprilGrids
 //! (pinhole, radtan, equidistant); the seed of cell `c` is `SEED + 1000·c` as there.
-use rigcal::bench::detect::{cell_params, study};
-use rigcal::detect::{detect_tags, gray::Gray, DetectOptions};
-use rigcal::synth::tagscene::scene;
+use rigcal_bench::detect::{cell_params, study};
+use rigcal_detect::{detect_tags, gray::Gray, DetectOptions};
+use rigcal_synth::tagscene::scene;
 
 fn main() {
     let a: Vec<String> = std::env::args().collect();

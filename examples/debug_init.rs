@@ -1,18 +1,18 @@
 //! Per-camera error of the linear initialisation against the truth (a debugging aid):
 //! `cargo run --release --example debug_init -- PRESET SEED SIGMA`.
-use rigcal::geometry::so3;
+use rigcal_core::geometry::so3;
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let preset = a.get(1).map(String::as_str).unwrap_or("car-planar-loop");
     let seed: u64 = a.get(2).and_then(|s| s.parse().ok()).unwrap_or(1000);
     let sigma: f64 = a.get(3).and_then(|s| s.parse().ok()).unwrap_or(1.0);
     let (s, truth) =
-        rigcal::bench::accuracy::synthetic_session(preset, seed, sigma).expect("preset");
-    let lm = rigcal::solver::bundle::LmOptions {
-        loss: rigcal::solver::Loss::Huber { scale: 2.0 },
+        rigcal_bench::accuracy::synthetic_session(preset, seed, sigma).expect("preset");
+    let lm = rigcal_solve::bundle::LmOptions {
+        loss: rigcal_solve::Loss::Huber { scale: 2.0 },
         ..Default::default()
     };
-    let t = rigcal::calib::trajectory::estimate(&s, &lm).expect("trajectories");
+    let t = rigcal_calib::trajectory::estimate(&s, &lm).expect("trajectories");
     for (i, sc) in t.scenes.iter().enumerate() {
         println!(
             "scene {i}: {} poses, {} points, metric {}, part_of {:?}",
@@ -46,7 +46,7 @@ fn main() {
             );
         }
     }
-    let init = rigcal::calib::handeye::initialise(&s, &t).expect("init");
+    let init = rigcal_calib::handeye::initialise(&s, &t).expect("init");
     println!(
         "class {:?} axis {:?} pairs used {} small {} near180 {} perm {} scale {:?}",
         init.motion.class,
@@ -57,7 +57,8 @@ fn main() {
         init.permutation,
         init.scene_scale
     );
-    let doc = rigcal::pipeline::calibrate(&s, &rigcal::pipeline::CalibOptions::default());
+    let doc =
+        rigcal_engine::pipeline::calibrate(&s, &rigcal_engine::pipeline::CalibOptions::default());
     let w0 = truth.world_from_rig[0].inverse();
     let mut line = String::from("rig dR deg:");
     for (f, w) in init.world_from_rig.iter().enumerate() {
@@ -72,11 +73,11 @@ fn main() {
         let e = init.ref_from_cam[c];
         let dr = so3::angle_between(&e.rot, &tr.rot).to_degrees();
         let dt = (e.trans - tr.trans) * 1e3;
-        let ax = rigcal::geometry::Vec3::from(init.motion.axis);
+        let ax = rigcal_core::geometry::Vec3::from(init.motion.axis);
         let w = so3::log(&(e.rot * tr.rot.transpose()));
         let about = w.dot(&ax).to_degrees();
         let tilt = (w - ax * w.dot(&ax)).norm().to_degrees();
-        let ba = rigcal::result::ExtrinsicValue::pose(&doc.extrinsics[c].value);
+        let ba = rigcal_core::result::ExtrinsicValue::pose(&doc.extrinsics[c].value);
         let wb = so3::log(&(ba.rot * tr.rot.transpose()));
         println!(
             "{:>6}: dR {:.4} deg (about axis {:.4}, tilt {:.4})  dt [{:.1} {:.1} {:.1}] mm | BA about {:.4} tilt {:.4}",

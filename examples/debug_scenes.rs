@@ -1,8 +1,9 @@
 //! Print the per-scene reconstruction summary of a session (a debugging aid).
 fn main() {
     let path = std::env::args().nth(1).expect("session.json");
-    let s = rigcal::session::parse_session(&std::fs::read(path).expect("read")).expect("valid");
-    let t = rigcal::calib::trajectory::estimate(&s, &Default::default()).expect("trajectories");
+    let s =
+        rigcal_core::session::parse_session(&std::fs::read(path).expect("read")).expect("valid");
+    let t = rigcal_calib::trajectory::estimate(&s, &Default::default()).expect("trajectories");
     for (i, sc) in t.scenes.iter().enumerate() {
         println!(
             "scene {i}: {} points, {} bodies, {} posed images, metric {}, sigma {:.3}",

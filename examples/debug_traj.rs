@@ -1,16 +1,16 @@
 //! Compare per-camera relative motions with the truth (a debugging aid).
-use rigcal::geometry::so3;
+use rigcal_core::geometry::so3;
 fn main() {
     let dir = std::path::PathBuf::from(std::env::args().nth(1).expect("dir"));
-    let s =
-        rigcal::session::parse_session(&std::fs::read(dir.join("session.json")).unwrap()).unwrap();
-    let truth: rigcal::synth::Truth =
+    let s = rigcal_core::session::parse_session(&std::fs::read(dir.join("session.json")).unwrap())
+        .unwrap();
+    let truth: rigcal_synth::Truth =
         serde_json::from_slice(&std::fs::read(dir.join("truth.json")).unwrap()).unwrap();
-    let lm = rigcal::solver::bundle::LmOptions {
-        loss: rigcal::solver::Loss::Huber { scale: 2.0 },
+    let lm = rigcal_solve::bundle::LmOptions {
+        loss: rigcal_solve::Loss::Huber { scale: 2.0 },
         ..Default::default()
     };
-    let t = rigcal::calib::trajectory::estimate(&s, &lm).unwrap();
+    let t = rigcal_calib::trajectory::estimate(&s, &lm).unwrap();
     for (si, sc) in t.scenes.iter().enumerate() {
         let keys: Vec<_> = sc.poses.keys().copied().collect();
         let k0 = keys[0];

@@ -1,7 +1,7 @@
 //! Render one image of a hall preset and say how long it took:
 //! `cargo run --release --example hall_view -- car-hall FRAME CAMERA OUT.png [SEED]`.
 
-use rigcal::synth::hall::{hall, Hall, Nuisance};
+use rigcal_synth::hall::{hall, Hall, Nuisance};
 use std::time::Instant;
 
 fn main() {

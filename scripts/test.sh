@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The test command of README.md: installs what the tests need on a fresh machine
 # (Debian's Chromium, Node.js and the browser test's npm packages, a Python venv for the
-# contract test), then runs every test: `cargo test --release` (unit, engine, service
+# contract test), then runs every test: `cargo test --release --workspace` (unit, engine, service
 # over real HTTP, crash test, the dashboard in headless Chromium) and the HTTP contract
 # test (schemathesis against the live server). .ci/run calls this same script.
 #
@@ -40,6 +40,6 @@ if [ "${RIGCAL_TEST_NO_INSTALL:-0}" != 1 ]; then
   fi
 fi
 
-cargo test --release "$@"
+cargo test --release --workspace "$@"
 # The HTTP contract: openapi.yaml against the running server (built by the line above).
 bash scripts/contract.sh

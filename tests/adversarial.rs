@@ -2,9 +2,9 @@
 //! document (failed, degraded or succeeded), never a panic.
 
 use rand::{Rng, SeedableRng};
-use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::session::{parse_session, SessionManifest};
-use rigcal::synth::generate;
+use rigcal_core::session::{parse_session, SessionManifest};
+use rigcal_engine::pipeline::{calibrate, CalibOptions};
+use rigcal_synth::generate;
 
 fn mutate(m: &mut SessionManifest, kind: usize, rng: &mut rand_chacha::ChaCha8Rng) {
     match kind {
@@ -107,7 +107,7 @@ fn hostile_sessions_get_a_document_not_a_panic() {
             if kind == 0 || kind == 2 {
                 assert_ne!(
                     doc.status,
-                    rigcal::result::Status::Succeeded,
+                    rigcal_core::result::Status::Succeeded,
                     "{preset}: mutation {kind}: {:?}",
                     doc.reasons
                 );

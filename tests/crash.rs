@@ -106,11 +106,13 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
     for sha in &acked {
         let blob = dir.path().join("blobs").join(&sha[..2]).join(sha);
         let bytes = std::fs::read(&blob).expect("acknowledged blob present");
-        assert_eq!(&rigcal::store::blob::sha256_hex(&bytes), sha);
+        assert_eq!(&rigcal_service::store::blob::sha256_hex(&bytes), sha);
     }
     drop(s);
 
-    let store = rigcal::store::Store::open(dir.path()).await.unwrap();
+    let store = rigcal_service::store::Store::open(dir.path())
+        .await
+        .unwrap();
     assert_eq!(store.integrity_check().await.unwrap(), "ok");
     for id in &jobs {
         let results: i64 = sqlx::query("SELECT COUNT(*) FROM results WHERE job_id = ?")

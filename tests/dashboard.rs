@@ -53,13 +53,13 @@ impl Drop for KillOnDrop {
 /// minutes to accept that many): statuses, vehicles and methods mixed, finished ones
 /// with a residual RMS. Returns how many of them are `failed`.
 async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
-    let store = rigcal::store::Store::open(dir).await.unwrap();
+    let store = rigcal_service::store::Store::open(dir).await.unwrap();
     let t = store.ensure_tenant(tenant).await.unwrap();
     let session = store
         .insert_session(&t, Some("fleet-0"), "motion", "{}", None)
         .await
         .unwrap();
-    let now = rigcal::store::now_ms();
+    let now = rigcal_service::store::now_ms();
     let statuses = ["succeeded", "succeeded", "degraded", "failed", "succeeded"];
     let mut failed = 0;
     let mut tx = store.pool.begin().await.unwrap();

@@ -1,12 +1,12 @@
 //! The detector against rendered images with known corners (issue 3), and sessions of
 //! images calibrated end to end through the detection stage.
 
-use rigcal::bench::detect::{run_cell, Cell};
-use rigcal::detect::{detect_tags, gray::Gray, quads, DetectOptions};
-use rigcal::geometry::{so3, Camera, Pose, Vec2, Vec3};
-use rigcal::session::TargetSpec;
-use rigcal::synth::render::{render, RenderOptions};
-use rigcal::synth::tagscene::{scene, Lens, SceneParams};
+use rigcal_bench::detect::{run_cell, Cell};
+use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use rigcal_core::session::TargetSpec;
+use rigcal_detect::{detect_tags, gray::Gray, quads, DetectOptions};
+use rigcal_synth::render::{render, RenderOptions};
+use rigcal_synth::tagscene::{scene, Lens, SceneParams};
 use std::process::Command;
 
 fn cell(grid: bool, lens: Lens, n: usize) -> Cell {
@@ -93,7 +93,7 @@ fn aprilgrids_are_completed_through_their_layout() {
 /// 30 px tags at 50° through radtan, 38 px tags at 56° through equidistant).
 #[test]
 fn boards_without_a_decimated_seed_are_found_whole() {
-    use rigcal::bench::detect::{cell_params, study};
+    use rigcal_bench::detect::{cell_params, study};
     for (views, cell, view) in [(10, 4, 4), (40, 5, 11)] {
         let c = &study(views, 1600, 1200)[cell];
         let p = cell_params(c, view, 1000 + 1000 * cell as u64);
@@ -127,7 +127,7 @@ fn boards_without_a_decimated_seed_are_found_whole() {
         let (mut sq, mut n) = (0.0, 0);
         for t in d.tags.iter().filter(|t| s.truth.contains_key(&t.id)) {
             for (k, tk) in s.truth[&t.id].iter().enumerate() {
-                sq += (rigcal::detect::corner(t, k) - tk).norm_squared();
+                sq += (rigcal_detect::corner(t, k) - tk).norm_squared();
                 n += 1;
             }
         }
@@ -267,7 +267,7 @@ fn segmentation_contrast_follows_the_noise() {
             );
             let truth = &s.truth[&d.tags[0].id];
             let worst = (0..4)
-                .map(|k| (rigcal::detect::corner(&d.tags[0], k) - truth[k]).norm())
+                .map(|k| (rigcal_detect::corner(&d.tags[0], k) - truth[k]).norm())
                 .fold(0.0, f64::max);
             // Corner noise grows as σ / contrast: 0.05 at 2/40, 0.04 at 8/205.
             assert!(
@@ -349,14 +349,14 @@ fn image_session(dir: &std::path::Path) -> (std::path::PathBuf, Pose) {
     let back = nalgebra::Matrix3::from_diagonal(&Vec3::new(-1.0, -1.0, 1.0));
     let world_from_rear_board = Pose::new(back, Vec3::new(0.2 + side / 2.0, side / 2.0, -1.6));
     let layouts = [
-        rigcal::target::board::GridLayout {
+        rigcal_core::target::board::GridLayout {
             rows: 6,
             cols: 6,
             tag_size: TAG,
             spacing: 0.3,
             first_id: 0,
         },
-        rigcal::target::board::GridLayout {
+        rigcal_core::target::board::GridLayout {
             rows: 6,
             cols: 6,
             tag_size: TAG,
@@ -507,8 +507,8 @@ fn bad_images_are_skipped_and_reported() {
 /// corners are all well inside are found.
 #[test]
 fn boards_cut_by_the_border_give_only_valid_observations() {
-    use rigcal::detect::BORDER_MARGIN;
-    use rigcal::target::board::GridLayout;
+    use rigcal_core::target::board::GridLayout;
+    use rigcal_detect::BORDER_MARGIN;
     let (w, h) = (640u32, 480u32);
     let layout = GridLayout {
         rows: 6,
@@ -563,7 +563,7 @@ fn boards_cut_by_the_border_give_only_valid_observations() {
                 .unwrap();
                 let truth = |id: u32, k: usize| {
                     let b = layout.corner(id, k).unwrap();
-                    rigcal::synth::render::project_board(&cam, &pose, b)
+                    rigcal_synth::render::project_board(&cam, &pose, b)
                 };
                 for p in &d.points {
                     let m = BORDER_MARGIN;
@@ -608,12 +608,12 @@ fn boards_cut_by_the_border_give_only_valid_observations() {
                     )
                     .unwrap(),
                 );
-                let spec = serde_json::to_value(rigcal::synth::camera_spec("cam", &cam)).unwrap();
+                let spec = serde_json::to_value(rigcal_synth::camera_spec("cam", &cam)).unwrap();
                 let manifest = serde_json::json!({
                     "version": 1, "reference_camera": "cam", "cameras": [spec],
                     "targets": [target], "frames": [{"index": 0, "observations": obs}],
                 });
-                rigcal::session::parse_session(manifest.to_string().as_bytes())
+                rigcal_core::session::parse_session(manifest.to_string().as_bytes())
                     .unwrap_or_else(|e| panic!("{lens:?} ({bu}, {bv}): {e}"));
                 checked += 1;
             }
@@ -631,7 +631,7 @@ fn boards_cut_by_the_border_give_only_valid_observations() {
 /// per-tag work. A dense hall view: boards, wall tags, textured walls.
 #[test]
 fn threads_share_the_work_of_one_image_without_changing_it() {
-    use rigcal::synth::hall::{hall, Hall, Nuisance};
+    use rigcal_synth::hall::{hall, Hall, Nuisance};
     let h = hall("car-hall", 3, Some((1024, 576))).unwrap();
     let n = Nuisance::default();
     let jpeg = Hall::encode(&h.render(2, 1, &n, 11), &n).unwrap();

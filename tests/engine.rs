@@ -1,11 +1,11 @@
 //! End-to-end tests of the motion method on synthetic sessions with known truth, run
 //! through the same entry points as the CLI (`parse_session` → `calibrate`).
 
-use rigcal::geometry::Pose;
-use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::result::{ResultDocument, Status};
-use rigcal::session::parse_session;
-use rigcal::synth::{generate, Truth};
+use rigcal_core::geometry::Pose;
+use rigcal_core::result::{ResultDocument, Status};
+use rigcal_core::session::parse_session;
+use rigcal_engine::pipeline::{calibrate, CalibOptions};
+use rigcal_synth::{generate, Truth};
 
 fn run(preset: &str, seed: u64, noise: f64) -> (ResultDocument, Truth) {
     let (manifest, truth) = generate(preset, seed, noise).expect("preset");
@@ -269,7 +269,7 @@ fn exports_state_their_convention() {
     let (manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
     let session = parse_session(serde_json::to_string(&manifest).unwrap().as_bytes()).unwrap();
     let doc = calibrate(&session, &CalibOptions::default());
-    use rigcal::export::{render, Format};
+    use rigcal_engine::export::{render, Format};
     assert!(render(&doc, &session, Format::Kalibr)
         .unwrap()
         .contains("T_cn_cnm1"));
@@ -287,7 +287,7 @@ fn exports_state_their_convention() {
 /// hold is refused with the reason.
 #[test]
 fn exports_quote_hostile_but_valid_ids() {
-    use rigcal::export::{render, ExportError, Format};
+    use rigcal_engine::export::{render, ExportError, Format};
     let (manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
     let text = serde_json::to_string(&manifest).unwrap();
     let plain = parse_session(text.as_bytes()).unwrap();
@@ -354,7 +354,7 @@ fn exports_quote_hostile_but_valid_ids() {
 #[test]
 fn uncertainty_is_honest_and_the_estimate_reaches_the_cramer_rao_bound() {
     // 200 noisy trials of the paper's protocol at σ = 0.5 px.
-    let rows = rigcal::bench::accuracy::accuracy("lebraly-5.1", &[0.5], 200, 5000);
+    let rows = rigcal_bench::accuracy::accuracy("lebraly-5.1", &[0.5], 200, 5000);
     let r = &rows[0];
     assert_eq!(r.failed, 0);
     assert!(r.nees > 0.8 * 6.0 && r.nees < 1.25 * 6.0, "NEES {}", r.nees);
@@ -413,7 +413,7 @@ fn the_initialisation_with_scene_permutation_stays_near_the_refined_result() {
     // bench (docs/accuracy.md) has 2.0-3.0×; 8 seeds scatter, hence 3.5 here. Before
     // the permutation entered the rotations the loop's initialisation was 20-40× the
     // refined error, the U-turn's 12× in rotation, and 1 U-turn in 20 started 180° off.
-    use rigcal::result::ExtrinsicValue;
+    use rigcal_core::result::ExtrinsicValue;
     for (preset, with_translation) in [("car-planar-loop", true), ("car-planar-uturn", false)] {
         let (mut init_r, mut ba_r, mut init_t, mut ba_t) = (0.0, 0.0, 0.0, 0.0);
         for seed in 0..8 {

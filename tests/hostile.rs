@@ -304,7 +304,7 @@ async fn a_lost_blob_is_an_input_error_not_a_calibration_verdict() {
             .unwrap();
         assert_eq!(r.status().as_u16(), 200);
     }
-    let sha = rigcal::store::blob::sha256_hex(&png(64, 48, 2));
+    let sha = rigcal_service::store::blob::sha256_hex(&png(64, 48, 2));
     std::fs::remove_file(dir.path().join("blobs").join(&sha[..2]).join(&sha)).unwrap();
     let view = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
     assert_eq!(view["images_received"], 1, "{view}");

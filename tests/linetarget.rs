@@ -2,14 +2,14 @@
 //! rig camera's own target, every auxiliary image's pair) and oblique views through
 //! distorting lenses. Corners, line points and vanishing points against the truth.
 
-use rigcal::detect::gray::Gray;
-use rigcal::detect::linetarget::{detect_line_targets, LineTargetDetection};
-use rigcal::detect::refine::Lens;
-use rigcal::geometry::{so3, Camera, Pose, Vec2, Vec3};
-use rigcal::synth::render::RenderOptions;
-use rigcal::synth::ring::{aux_camera, render_line_targets, rig_camera, table2_scene, TARGET};
-use rigcal::synth::tagscene::Lens as SynthLens;
-use rigcal::target::line_target::{LineTarget, LINES, X_GROUP, Z_GROUP};
+use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use rigcal_core::target::line_target::{LineTarget, LINES, X_GROUP, Z_GROUP};
+use rigcal_detect::gray::Gray;
+use rigcal_detect::linetarget::{detect_line_targets, LineTargetDetection};
+use rigcal_detect::refine::Lens;
+use rigcal_synth::render::RenderOptions;
+use rigcal_synth::ring::{aux_camera, render_line_targets, rig_camera, table2_scene, TARGET};
+use rigcal_synth::tagscene::Lens as SynthLens;
 
 fn opts(seed: u64, noise: f64) -> RenderOptions {
     RenderOptions {
@@ -69,7 +69,7 @@ fn errors(
 /// Auxiliary image `k` of the Table 2 ring (targets `k` and `k + 1`) and the two
 /// `aux_from_target` poses.
 fn aux_view(
-    scene: &rigcal::synth::ring::RingScene,
+    scene: &rigcal_synth::ring::RingScene,
     aux: &Camera,
     k: usize,
 ) -> (image::GrayImage, Vec<Pose>) {
@@ -79,7 +79,7 @@ fn aux_view(
 }
 
 /// `aux_from_target` of auxiliary view `k`'s two targets.
-fn aux_poses(scene: &rigcal::synth::ring::RingScene, k: usize) -> Vec<Pose> {
+fn aux_poses(scene: &rigcal_synth::ring::RingScene, k: usize) -> Vec<Pose> {
     [k, (k + 1) % 8]
         .iter()
         .map(|t| scene.ecf_from_aux[k].inverse() * scene.ecf_from_target[*t])
@@ -237,11 +237,11 @@ fn nothing_on_images_without_a_line_target() {
         so3::exp(&Vec3::new(0.0, 0.0, 0.0)),
         Vec3::new(-0.2, -0.15, 0.6),
     );
-    let img = rigcal::synth::render::render(&cam, &pose, &shapes, &opts(7, 2.0));
+    let img = rigcal_synth::render::render(&cam, &pose, &shapes, &opts(7, 2.0));
     let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&cam)));
     assert!(found.is_empty(), "{} false targets", found.len());
     // Pure noise.
-    let noise = rigcal::synth::render::render(&cam, &pose, &|_, _| None, &opts(8, 20.0));
+    let noise = rigcal_synth::render::render(&cam, &pose, &|_, _| None, &opts(8, 20.0));
     assert!(detect_line_targets(&Gray::from_luma8(&noise), Lens(Some(&cam))).is_empty());
 }
 
@@ -252,7 +252,7 @@ fn nothing_on_images_without_a_line_target() {
 fn table2_ring_calibrates_from_rendered_images() {
     let dir = tempfile::tempdir().unwrap();
     let (manifest, truth, files) =
-        rigcal::synth::ring::image_session(&rig_camera(), &aux_camera(), &table2_scene(), 2.0, 5);
+        rigcal_synth::ring::image_session(&rig_camera(), &aux_camera(), &table2_scene(), 2.0, 5);
     for (path, bytes) in &files {
         let p = dir.path().join(path);
         std::fs::create_dir_all(p.parent().unwrap()).unwrap();

@@ -1,9 +1,9 @@
 //! Queue semantics on a real SQLite database: atomic claims, leases, exactly-once
 //! completion, retry with backoff, attempt limits, cancellation.
 
-use rigcal::jobs::acceptance::ResultSummary;
-use rigcal::jobs::queue::Queue;
-use rigcal::store::Store;
+use rigcal_service::jobs::acceptance::ResultSummary;
+use rigcal_service::jobs::queue::Queue;
+use rigcal_service::store::Store;
 use serde_json::json;
 
 async fn setup() -> (tempfile::TempDir, Store, Queue, String, String) {

@@ -4,11 +4,11 @@
 mod common;
 
 use common::*;
-use rigcal::bench::accuracy::{error6, observable, synthetic_session};
-use rigcal::geometry::Vec3;
-use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::result::{ExtrinsicValue, ResultDocument, Status};
-use rigcal::synth::hall::{hall, Hall, Nuisance};
+use rigcal_bench::accuracy::{error6, observable, synthetic_session};
+use rigcal_core::geometry::Vec3;
+use rigcal_core::result::{ExtrinsicValue, ResultDocument, Status};
+use rigcal_engine::pipeline::{calibrate, CalibOptions};
+use rigcal_synth::hall::{hall, Hall, Nuisance};
 use serde_json::Value;
 
 /// A planar S-curve where every target is seen by one camera only: each non-reference

@@ -801,7 +801,7 @@ async fn a_vanishing_ring_calibrates_through_the_service_and_ring_images_are_slo
     let c = client(&key);
 
     // Detections (line points): checked at once, then solved.
-    let (m, truth) = rigcal::synth::generate("wu-table2", 11, 0.3).unwrap();
+    let (m, truth) = rigcal_synth::generate("wu-table2", 11, 0.3).unwrap();
     let sess = create_session(&c, &s, &serde_json::to_value(&m).unwrap()).await;
     assert_eq!(sess["method"], "vanishing");
     assert_eq!(sess["capture_check"]["verdict"], "ok", "{sess}");

@@ -3,14 +3,14 @@
 
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
-use rigcal::geometry::{so3, Camera, CameraModel, Pose, Vec3};
-use rigcal::pipeline::{calibrate, CalibOptions};
-use rigcal::result::{ResultDocument, Status};
-use rigcal::session::{parse_session, SessionManifest};
-use rigcal::synth::ring::{
+use rigcal_core::geometry::{so3, Camera, CameraModel, Pose, Vec3};
+use rigcal_core::result::{ResultDocument, Status};
+use rigcal_core::session::{parse_session, SessionManifest};
+use rigcal_engine::pipeline::{calibrate, CalibOptions};
+use rigcal_synth::ring::{
     aux_camera, generate_with, rig_camera, ring_scene, table2_scene, RingLayout, RingScene,
 };
-use rigcal::synth::Truth;
+use rigcal_synth::Truth;
 
 fn session(
     seed: u64,

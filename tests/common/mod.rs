@@ -94,7 +94,7 @@ pub fn client(key: &str) -> reqwest::Client {
 
 /// A synthetic session (detections) as JSON bytes, with a vehicle id.
 pub fn synth_session(preset: &str, seed: u64, noise: f64, vehicle: &str) -> Value {
-    let (m, _) = rigcal::synth::generate(preset, seed, noise).expect("preset");
+    let (m, _) = rigcal_synth::generate(preset, seed, noise).expect("preset");
     let mut v = serde_json::to_value(&m).unwrap();
     v["vehicle_id"] = Value::String(vehicle.into());
     v

@@ -1,0 +1,256 @@
+//! Diagnostics of a refined rig: extrinsic covariance with the unobservable directions
+//! removed, observable DOF per camera, the unobservable directions themselves, and
+//! residual statistics. Observability is computed from the information matrix of the
+//! actual problem, not read off Table 1 of the paper.
+
+use super::handeye::InitOutput;
+use super::motion::MotionClass;
+use super::rig_ba::RigBaOutput;
+use super::trajectory::Trajectories;
+use nalgebra::{DMatrix, DVector};
+use rigcal_core::geometry::Vec3;
+use rigcal_core::result::*;
+use rigcal_core::session::Session;
+use std::collections::{BTreeMap, BTreeSet};
+
+/// A direction is unobservable when its 1-σ (at ≥ 0.1 px noise) exceeds this many
+/// metres (translation) or radians (rotation), or its eigenvalue is numerically zero.
+pub const UNOBSERVABLE_SIGMA: f64 = 0.5;
+/// Relative eigenvalue below which a direction carries no information at all.
+pub const NULL_RELATIVE: f64 = 1e-9;
+/// Floor of the pixel noise used for the observability decision (noise-free data
+/// would otherwise make every direction look perfectly determined).
+pub const MIN_DECISION_SIGMA_PX: f64 = 0.1;
+
+fn is_unobservable(l: f64, lmax: f64, decision_sigma: f64) -> bool {
+    l <= NULL_RELATIVE * lmax
+        || decision_sigma.max(MIN_DECISION_SIGMA_PX) / l.max(1e-300).sqrt() > UNOBSERVABLE_SIGMA
+}
+
+/// Unit directions of the joint extrinsic space that the information `info` (unit
+/// pixel noise) does not determine at pixel noise `decision_sigma`.
+pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<f64>> {
+    let eig = rigcal_core::linalg::symmetric_eigen(info);
+    let lmax = eig.eigenvalues.amax().max(1e-300);
+    (0..info.nrows())
+        .filter(|&k| is_unobservable(eig.eigenvalues[k], lmax, decision_sigma))
+        .map(|k| eig.eigenvectors.column(k).into_owned())
+        .collect()
+}
+
+/// Directions that planar motion leaves undetermined whatever the noise. The rig turns
+/// only about the plane normal `n`, so a camera moved along `n` (rig frame) sees its
+/// scene displaced by the same world vector at every pose, which displacing that scene
+/// undoes; only a scene shared with a camera that stays put ties the height. So: one
+/// direction per group of cameras linked by shared scenes, the reference's group
+/// excepted — all of the group's cameras along `n`. Unit vectors in the joint space of
+/// the free cameras `cams` (6 per camera: translation, then rotation); empty unless the
+/// motion is planar.
+///
+/// The numerical information cannot be trusted to find these at the initialisation:
+/// there the rig's rotation axes scatter by the trajectories' noise, which makes each
+/// height look determined to centimetres by thousands of corners, while the data hold
+/// no information on it at all.
+pub fn planar_height_directions(
+    traj: &Trajectories,
+    init: &InitOutput,
+    reference: usize,
+    cams: &[usize],
+) -> Vec<DVector<f64>> {
+    if init.motion.class != MotionClass::Planar {
+        return vec![];
+    }
+    let n = Vec3::from(init.motion.axis).normalize();
+    let nc = init.ref_from_cam.len();
+    let mut group: Vec<usize> = (0..nc).collect();
+    fn root(g: &mut [usize], mut i: usize) -> usize {
+        while g[i] != i {
+            g[i] = g[g[i]];
+            i = g[i];
+        }
+        i
+    }
+    for scene in &traj.scenes {
+        let seen: BTreeSet<usize> = scene.poses.keys().map(|&(_, c)| c).collect();
+        let mut it = seen.into_iter();
+        if let Some(first) = it.next() {
+            for c in it {
+                let (a, b) = (root(&mut group, first), root(&mut group, c));
+                group[a] = b;
+            }
+        }
+    }
+    let fixed = root(&mut group, reference);
+    let mut by_group: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+    for (i, &c) in cams.iter().enumerate() {
+        let g = root(&mut group, c);
+        if g != fixed {
+            by_group.entry(g).or_default().push(i);
+        }
+    }
+    by_group
+        .into_values()
+        .map(|members| {
+            let mut v = DVector::zeros(6 * cams.len());
+            for i in members {
+                v.fixed_rows_mut::<3>(6 * i).copy_from(&n);
+            }
+            v.normalize()
+        })
+        .collect()
+}
+
+/// `dirs` made orthogonal to the unit vectors `against` and to each other (those left
+/// with less than half their length are dropped), each kept with its tag.
+pub fn orthogonalised<T>(
+    against: &[DVector<f64>],
+    dirs: impl IntoIterator<Item = (DVector<f64>, T)>,
+) -> Vec<(DVector<f64>, T)> {
+    let mut basis: Vec<DVector<f64>> = against.to_vec();
+    let mut out = Vec::new();
+    for (v, tag) in dirs {
+        let mut u = v;
+        for b in &basis {
+            let d = b.dot(&u);
+            u -= b * d;
+        }
+        if u.norm() > 0.5 {
+            let u = u.normalize();
+            basis.push(u.clone());
+            out.push((u, tag));
+        }
+    }
+    out
+}
+
+pub struct Observability {
+    /// Per free camera (index into session cameras): covariance 6×6 (m, rad) with nulls removed.
+    pub cov: Vec<(usize, DMatrix<f64>)>,
+    /// Unit null directions in the joint space of the free cameras: first the planar
+    /// heights ([`planar_height_directions`], `held` of them), then the others.
+    pub null: Vec<(DVector<f64>, Option<f64>)>,
+    pub held: usize,
+    pub cams: Vec<usize>,
+    pub per_camera_eigen: Vec<Vec<f64>>,
+}
+
+/// `sigma_floor_px`: the least corner noise the covariance assumes (see
+/// `pipeline::DETECTED_CORNER_SIGMA_FLOOR_PX`).
+pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observability> {
+    let (cams, info) = ba.information.clone()?;
+    let n = info.nrows();
+    let sym = (&info + info.transpose()) * 0.5;
+    // The planar heights carry no information whatever the numbers say: taken out of
+    // the information, so the covariance excludes them and they lead the null list.
+    let held = &ba.held_directions;
+    let keep = held
+        .iter()
+        .fold(DMatrix::identity(n, n), |p, s| p - s * s.transpose());
+    let eig = rigcal_core::linalg::symmetric_eigen(&(&keep * &sym * &keep));
+    let lmax = eig.eigenvalues.amax().max(1e-300);
+    let sigma = if ba.sigma_px.is_finite() {
+        ba.sigma_px.max(sigma_floor_px)
+    } else {
+        1.0
+    };
+    let mut cov = DMatrix::zeros(n, n);
+    let mut null = Vec::new();
+    for k in 0..n {
+        let l = eig.eigenvalues[k];
+        let v = eig.eigenvectors.column(k).into_owned();
+        if is_unobservable(l, lmax, sigma) {
+            let s = if l > NULL_RELATIVE * lmax {
+                Some(sigma / l.sqrt())
+            } else {
+                None
+            };
+            null.push((v, s));
+        } else {
+            cov += &v * v.transpose() * (sigma * sigma / l);
+        }
+    }
+    let per_cov = cams
+        .iter()
+        .enumerate()
+        .map(|(i, c)| (*c, cov.view((6 * i, 6 * i), (6, 6)).into_owned()))
+        .collect();
+    let per_camera_eigen = (0..cams.len())
+        .map(|i| {
+            let b = sym.view((6 * i, 6 * i), (6, 6)).into_owned();
+            let b = rigcal_core::linalg::symmetric_eigen(&b);
+            let mut e: Vec<f64> = b.eigenvalues.iter().copied().collect();
+            e.sort_by(|a, b| b.total_cmp(a));
+            e
+        })
+        .collect();
+    let mut all: Vec<(DVector<f64>, Option<f64>)> =
+        held.iter().map(|s| (s.clone(), None)).collect();
+    all.extend(orthogonalised(held, null));
+    Some(Observability {
+        cov: per_cov,
+        null: all,
+        held: held.len(),
+        cams,
+        per_camera_eigen,
+    })
+}
+
+/// Rank of the null directions restricted to rows `[off, off+3)`: DOF lost there.
+pub fn lost_dof(null: &[(DVector<f64>, Option<f64>)], off: usize) -> u8 {
+    if null.is_empty() {
+        return 0;
+    }
+    let m = DMatrix::from_fn(3, null.len(), |i, j| null[j].0[off + i]);
+    let sv = m.singular_values();
+    sv.iter().filter(|s| **s > 0.1).count() as u8
+}
+
+/// Is axis `axis` of rows `[off, off+3)` touched by a null direction?
+pub fn axis_unobservable(null: &[(DVector<f64>, Option<f64>)], off: usize, axis: usize) -> bool {
+    null.iter().any(|(v, _)| v[off + axis].abs() > 0.1)
+}
+
+pub fn residual_report(session: &Session, ba: &RigBaOutput) -> Residuals {
+    let nc = session.cameras.len();
+    let mut all = Vec::new();
+    let mut per_cam = vec![Vec::new(); nc];
+    let mut per_frame: std::collections::BTreeMap<usize, Vec<f64>> = Default::default();
+    for (o, k) in ba.problem.observations.iter().zip(&ba.keys) {
+        if let Some(r) = ba.problem.residual(o) {
+            let e = r.norm();
+            all.push(e);
+            per_cam[k.camera].push(e);
+            per_frame.entry(k.frame).or_default().push(e);
+        }
+    }
+    Residuals {
+        all: Stats::of(&all),
+        inliers: all.len(),
+        outliers: ba.outliers.len(),
+        sigma_px: ba.sigma_px,
+        per_camera: (0..nc)
+            .map(|c| CameraStats {
+                camera: session.cameras[c].id.clone(),
+                stats: Stats::of(&per_cam[c]),
+            })
+            .collect(),
+        per_frame: per_frame
+            .into_iter()
+            .map(|(f, v)| FrameStats {
+                frame: session.frames[f].index,
+                stats: Stats::of(&v),
+            })
+            .collect(),
+        histogram: Histogram::of(&all, 20),
+        outlier_list: ba
+            .outliers
+            .iter()
+            .map(|(k, e)| Outlier {
+                frame: session.frames[k.frame].index,
+                camera: session.cameras[k.camera].id.clone(),
+                point: session.points.ids[k.point].clone(),
+                residual_px: *e,
+            })
+            .collect(),
+    }
+}

@@ -1,0 +1,143 @@
+//! A grey image in floating point for subpixel measurement, from any decoded PNG/JPEG
+//! (8 or 16 bit, grey or colour); 16-bit precision is kept (scaled to 0..255).
+
+use rigcal_core::geometry::Vec2;
+
+#[derive(Clone, Debug)]
+pub struct Gray {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<f32>,
+}
+
+impl Gray {
+    pub fn from_dynamic(img: &image::DynamicImage) -> Gray {
+        let l = img.to_luma32f();
+        Gray {
+            width: l.width() as usize,
+            height: l.height() as usize,
+            data: l.into_raw().into_iter().map(|v| v * 255.0).collect(),
+        }
+    }
+
+    pub fn from_luma8(img: &image::GrayImage) -> Gray {
+        Gray {
+            width: img.width() as usize,
+            height: img.height() as usize,
+            data: img.as_raw().iter().map(|&v| v as f32).collect(),
+        }
+    }
+
+    /// 8-bit copy, rounded, for the AprilTag quad detector.
+    pub fn to_u8(&self) -> Vec<u8> {
+        self.data
+            .iter()
+            // (+½ then truncate: `f32::round` is a libm call per pixel.)
+            .map(|v| (v + 0.5).clamp(0.0, 255.0) as u8)
+            .collect()
+    }
+
+    /// Robust estimate of the image noise σ (grey levels), from the median response of
+    /// Immerkær's mask `[1 −2 1; −2 4 −2; 1 −2 1]` (blind to planes, so shading does not
+    /// count; σ of its response to white noise is 6σ) on every other pixel. The median
+    /// ignores edges and texture as long as they cover under half the image.
+    ///
+    /// Why: the quad detector's segmentation must ignore contrast that noise alone makes,
+    /// or it segments flat, noisy background into thousands of components (13× its time
+    /// on 1600×1200 renders at σ 2 grey).
+    pub fn noise_sigma(&self) -> f64 {
+        let (w, h) = (self.width, self.height);
+        if w < 3 || h < 3 {
+            return 0.0;
+        }
+        let at = |x: usize, y: usize| self.data[y * w + x];
+        // Median of |response| from a histogram (bins of 1/4 grey level): O(n), where a
+        // selection over the 480 000 responses of a 1600×1200 image took 4 ms.
+        const BIN: f32 = 0.25;
+        const BINS: usize = 4096;
+        let mut hist = vec![0u32; BINS + 1];
+        let mut n = 0u32;
+        for y in (1..h - 1).step_by(2) {
+            for x in (1..w - 1).step_by(2) {
+                let v = at(x - 1, y - 1) + at(x + 1, y - 1) + at(x - 1, y + 1) + at(x + 1, y + 1)
+                    - 2.0 * (at(x, y - 1) + at(x - 1, y) + at(x + 1, y) + at(x, y + 1))
+                    + 4.0 * at(x, y);
+                let b = ((v.abs() / BIN) as usize).min(BINS);
+                hist[b] += 1;
+                n += 1;
+            }
+        }
+        let half = n as f64 / 2.0;
+        let mut below = 0.0;
+        for (b, &c) in hist.iter().enumerate() {
+            let c = c as f64;
+            if below + c >= half && c > 0.0 {
+                // Within the bin, linearly (8-bit images give integer responses, all at
+                // bin starts: off by under a bin, 0.06 grey levels of σ).
+                let m = b as f64 * BIN as f64 + (half - below) / c * BIN as f64;
+                return m / (0.6745 * 6.0);
+            }
+            below += c;
+        }
+        BINS as f64 * BIN as f64 / (0.6745 * 6.0)
+    }
+
+    /// Bilinear sample at `p` (pixel-centre convention: pixel `(i, j)` is at `(i, j)`);
+    /// `None` outside the pixel centres' hull.
+    pub fn sample(&self, p: Vec2) -> Option<f64> {
+        if !(p.x >= 0.0 && p.y >= 0.0) {
+            return None;
+        }
+        let (x0, y0) = (p.x.floor() as usize, p.y.floor() as usize);
+        if x0 + 1 >= self.width || y0 + 1 >= self.height {
+            return None;
+        }
+        let (fx, fy) = (p.x - x0 as f64, p.y - y0 as f64);
+        let at = |x: usize, y: usize| self.data[y * self.width + x] as f64;
+        Some(
+            (1.0 - fy) * ((1.0 - fx) * at(x0, y0) + fx * at(x0 + 1, y0))
+                + fy * ((1.0 - fx) * at(x0, y0 + 1) + fx * at(x0 + 1, y0 + 1)),
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_distr::{Distribution, Normal};
+
+    #[test]
+    fn noise_sigma_is_recovered_on_shaded_images_with_edges() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(7);
+        for sigma in [0.0f64, 1.0, 2.0, 5.0, 10.0] {
+            let noise = Normal::new(0.0, sigma.max(1e-12)).unwrap();
+            let (w, h) = (400, 300);
+            let data = (0..w * h)
+                .map(|i| {
+                    let (x, y) = ((i % w) as f64, (i / w) as f64);
+                    // A shading ramp and a bright square: neither is noise.
+                    let base = 60.0 + 0.3 * x + 0.1 * y;
+                    let square =
+                        if (100..200).contains(&(x as i32)) && (50..150).contains(&(y as i32)) {
+                            120.0
+                        } else {
+                            0.0
+                        };
+                    (base + square + noise.sample(&mut rng)) as f32
+                })
+                .collect();
+            let g = Gray {
+                width: w,
+                height: h,
+                data,
+            };
+            let est = g.noise_sigma();
+            // 5 % plus the histogram's bin (¼ grey level of response, 0.06 of σ).
+            assert!(
+                (est - sigma).abs() <= 0.05 * sigma + 0.07,
+                "σ {sigma}: estimated {est}"
+            );
+        }
+    }
+}

@@ -1,0 +1,237 @@
+//! AprilGrid completion: the board's known layout finds the tags the quad detector
+//! missed (Kalibr grids' crossing squares touch every tag corner and break its quad
+//! segmentation), and rejects detections that do not sit where the layout says.
+//!
+//! Prediction is local: a tag's corners come from a homography fitted to the nearest
+//! accepted tags (grid distance), in the undistorted plane when the camera is known, so
+//! lens distortion and slight board bending do not accumulate across the board.
+
+use super::gray::Gray;
+use super::refine::{refine_quad, Lens, Refined};
+use super::verify::read_tag;
+use rigcal_core::geometry::homography::homography;
+use rigcal_core::geometry::{Mat3, Vec2, Vec3};
+use rigcal_core::target::board::GridLayout;
+use std::collections::BTreeMap;
+
+/// How far (px) a predicted side may be from the real one.
+const PREDICTION_REACH: f64 = 3.0;
+/// Tags used to predict a neighbour.
+const NEAREST: usize = 4;
+
+pub struct Found {
+    pub refined: Refined,
+    pub hamming: u32,
+    pub margin: f64,
+    pub predicted: bool,
+}
+
+/// Homography board → plane from the accepted tags nearest to `(row, col)`.
+fn local_homography(
+    layout: &GridLayout,
+    plane: &BTreeMap<u32, [Vec2; 4]>,
+    row: u32,
+    col: u32,
+    exclude: Option<u32>,
+) -> Option<Mat3> {
+    let mut near: Vec<(u32, u32)> = plane
+        .keys()
+        .filter(|&&id| Some(id) != exclude)
+        .filter_map(|&id| {
+            let (r, c) = layout.cell_of(id)?;
+            Some((r.abs_diff(row).max(c.abs_diff(col)), id))
+        })
+        .collect();
+    near.sort();
+    near.truncate(NEAREST);
+    if near.is_empty() {
+        return None;
+    }
+    let (mut a, mut x) = (Vec::new(), Vec::new());
+    for (_, id) in &near {
+        for k in 0..4 {
+            a.push(layout.corner(*id, k)?);
+            x.push(plane[id][k]);
+        }
+    }
+    homography(&a, &x)
+}
+
+fn predict(layout: &GridLayout, h: &Mat3, id: u32, lens: Lens, img: &Gray) -> Option<[Vec2; 4]> {
+    let mut out = [Vec2::zeros(); 4];
+    for (k, o) in out.iter_mut().enumerate() {
+        let b = layout.corner(id, k)?;
+        let p = h * Vec3::new(b.x, b.y, 1.0);
+        if p.z.abs() < 1e-12 {
+            return None;
+        }
+        *o = lens.to_pixel(Vec2::new(p.x / p.z, p.y / p.z))?;
+        let margin = 2.0;
+        if o.x < margin
+            || o.y < margin
+            || o.x > img.width as f64 - 1.0 - margin
+            || o.y > img.height as f64 - 1.0 - margin
+        {
+            return None;
+        }
+    }
+    Some(out)
+}
+
+/// How far (px) a tag's final corners may be from where its board neighbours put them.
+/// Corners are measured to a few hundredths of a pixel and the local homography
+/// carries that to well under half a pixel (under a pixel without the camera, where the
+/// plane keeps the lens's distortion); a tag several pixels off was measured on the
+/// wrong transitions, e.g. a crossing square taken for its corner, while its bits still
+/// read right.
+pub const CONSISTENT_PX: f64 = 1.5;
+
+/// The tags of one board (final corners, raw pixels) that sit more than
+/// [`CONSISTENT_PX`] from where their nearest neighbours' homography puts them, with the
+/// deviation. Worst first, one at a time, so one wrong tag does not condemn the correct
+/// neighbours it would pull; judged only with at least 3 neighbours to judge by.
+pub fn inconsistent(
+    layout: &GridLayout,
+    corners: &BTreeMap<u32, [Vec2; 4]>,
+    lens: Lens,
+) -> BTreeMap<u32, f64> {
+    let mut plane: BTreeMap<u32, [Vec2; 4]> = corners
+        .iter()
+        .filter_map(|(id, c)| Some((*id, lens.quad_to_plane(c)?)))
+        .collect();
+    let mut out = BTreeMap::new();
+    while plane.len() >= 4 {
+        let worst = plane
+            .keys()
+            .filter_map(|&id| {
+                let (r, c) = layout.cell_of(id)?;
+                let h = local_homography(layout, &plane, r, c, Some(id))?;
+                let dev = (0..4)
+                    .map(|k| {
+                        let b = layout.corner(id, k)?;
+                        let p = h * Vec3::new(b.x, b.y, 1.0);
+                        let q = lens.to_pixel(Vec2::new(p.x / p.z, p.y / p.z))?;
+                        Some((q - corners[&id][k]).norm())
+                    })
+                    .try_fold(0.0f64, |m, d| d.map(|d| m.max(d)))?;
+                Some((id, dev))
+            })
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        match worst {
+            Some((id, dev)) if dev > CONSISTENT_PX => {
+                plane.remove(&id);
+                out.insert(id, dev);
+            }
+            _ => break,
+        }
+    }
+    out
+}
+
+/// Complete and check one board. `seeds` are the refined quad-detector tags whose ids
+/// belong to the board (at most one per id).
+pub fn complete(
+    img: &Gray,
+    layout: &GridLayout,
+    seeds: BTreeMap<u32, Found>,
+    lens: Lens,
+    max_hamming: u32,
+    rejected: &mut Vec<(u32, String)>,
+) -> BTreeMap<u32, Found> {
+    let mut found = BTreeMap::new();
+    let mut plane = BTreeMap::new();
+    for (id, f) in seeds {
+        if let Some(p) = lens.quad_to_plane(&f.refined.corners) {
+            plane.insert(id, p);
+            found.insert(id, f);
+        }
+    }
+    // Each seed must sit where its neighbours put it (with at least 2 other tags to judge).
+    if found.len() >= 3 {
+        let ids: Vec<u32> = found.keys().copied().collect();
+        for id in ids {
+            let Some((r, c)) = layout.cell_of(id) else {
+                continue;
+            };
+            let Some(h) = local_homography(layout, &plane, r, c, Some(id)) else {
+                continue;
+            };
+            let Some(pred) = predict(layout, &h, id, lens, img) else {
+                continue;
+            };
+            let got = &found[&id].refined.corners;
+            let side = (got[1] - got[0]).norm().max((got[2] - got[1]).norm());
+            let err = (0..4)
+                .map(|k| (pred[k] - got[k]).norm())
+                .fold(0.0, f64::max);
+            // Refined corners are good to hundredths of a pixel; a seed pixels off its
+            // neighbours was refined on the wrong transitions. Dropped here, the growth
+            // below measures it again from where the layout puts it.
+            if err > (0.03 * side).max(CONSISTENT_PX) {
+                rejected.push((
+                    id,
+                    format!("tag {id} lies {err:.1} px from where the board layout puts it"),
+                ));
+                found.remove(&id);
+                plane.remove(&id);
+            }
+        }
+    }
+    // Grow from the accepted tags to their neighbours until nothing more is found.
+    let mut tried = std::collections::HashSet::new();
+    loop {
+        let mut added = false;
+        let frontier: Vec<u32> = layout
+            .ids()
+            .filter(|id| !found.contains_key(id) && !tried.contains(id))
+            .filter(|&id| {
+                let Some((r, c)) = layout.cell_of(id) else {
+                    return false;
+                };
+                found.keys().any(|&o| {
+                    layout
+                        .cell_of(o)
+                        .is_some_and(|(ro, co)| ro.abs_diff(r) <= 1 && co.abs_diff(c) <= 1)
+                })
+            })
+            .collect();
+        for id in frontier {
+            tried.insert(id);
+            let Some((r, c)) = layout.cell_of(id) else {
+                continue;
+            };
+            let Some(h) = local_homography(layout, &plane, r, c, None) else {
+                continue;
+            };
+            let Some(pred) = predict(layout, &h, id, lens, img) else {
+                continue;
+            };
+            let Some(refined) = refine_quad(img, &pred, lens, PREDICTION_REACH) else {
+                continue;
+            };
+            let Some(reading) = read_tag(img, &refined.corners, lens, id) else {
+                continue;
+            };
+            let strong = reading.margin >= (0.3 * refined.contrast).max(10.0);
+            if reading.hamming <= max_hamming && reading.border_black >= 26 && strong {
+                if let Some(p) = lens.quad_to_plane(&refined.corners) {
+                    plane.insert(id, p);
+                    found.insert(
+                        id,
+                        Found {
+                            refined,
+                            hamming: reading.hamming,
+                            margin: reading.margin,
+                            predicted: true,
+                        },
+                    );
+                    added = true;
+                }
+            }
+        }
+        if !added {
+            break;
+        }
+    }
+    found
+}

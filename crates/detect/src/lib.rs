@@ -1,0 +1,483 @@
+//! Detection from images (issue 3): AprilTag tag36h11 corners with subpixel edge
+//! refinement, Kalibr AprilGrids completed through their layout.
+//!
+//! Pipeline per image: quad candidates from the AprilTag 3 C detector ([`quads`]) →
+//! each candidate's corners re-measured from its outer edges ([`refine`]) → candidates
+//! assigned to the session's targets by id → each AprilGrid checked and completed
+//! through its layout ([`grid`]). Points are measured on the raw image and reported in
+//! raw pixels (the calibration models distortion itself); with a camera, the sides are
+//! fitted in the undistorted plane so distortion does not bend them. Nothing is
+//! resampled.
+
+pub mod gray;
+mod grid;
+pub mod imageio;
+pub mod linetarget;
+pub mod quads;
+pub mod refine;
+pub mod tagfit;
+mod verify;
+
+use gray::Gray;
+use refine::{refine_quad, Lens};
+use rigcal_core::geometry::{Camera, Vec2};
+use rigcal_core::session::TargetSpec;
+use rigcal_core::target::board::GridLayout;
+use serde::Serialize;
+use std::collections::BTreeMap;
+
+/// How far (px) the quad detector's sides may be from the true ones: in AprilGrids its
+/// quads often take in the crossing squares and sit 2-4 px out.
+const QUAD_REACH: f64 = 4.0;
+
+#[derive(Clone, Debug)]
+pub struct DetectOptions {
+    pub quads: quads::QuadOptions,
+    /// Fit tags too small for the edge measurement whole ([`tagfit`]): corners ~5× more
+    /// accurate on them, at ~1-3 ms per such tag. Off, their corners are the edge
+    /// measurement's (0.05-0.1 px RMS under ~40 px).
+    pub whole_tag_fit: bool,
+    /// Threads for the per-tag work of one image (edge refinement, whole-tag fits). 1
+    /// where images are detected in parallel already (a job, `rigcal calibrate`); the
+    /// cores for one image on its own (`rigcal detect`).
+    pub threads: usize,
+}
+
+impl Default for DetectOptions {
+    fn default() -> Self {
+        Self {
+            quads: quads::QuadOptions::default(),
+            whole_tag_fit: true,
+            threads: 1,
+        }
+    }
+}
+
+/// `f` over `items` on up to `threads` scoped threads, results in the items' order.
+/// Items are dealt round-robin, so tags of one board (similar sizes, similar cost)
+/// spread over the threads.
+fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
+    let threads = threads.clamp(1, items.len().max(1));
+    if threads == 1 {
+        return items.iter().map(f).collect();
+    }
+    let f = &f;
+    let mut parts: Vec<Vec<(usize, R)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..threads)
+            .map(|t| {
+                scope.spawn(move || {
+                    (t..items.len())
+                        .step_by(threads)
+                        .map(|i| (i, f(&items[i])))
+                        .collect::<Vec<_>>()
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
+            .collect()
+    });
+    let mut out: Vec<(usize, R)> = parts.drain(..).flatten().collect();
+    out.sort_by_key(|(i, _)| *i);
+    out.into_iter().map(|(_, r)| r).collect()
+}
+
+/// One tag found in an image.
+#[derive(Clone, Debug, Serialize)]
+pub struct TagDetection {
+    pub target: String,
+    pub id: u32,
+    /// Raw pixels, corner `k` counter-clockwise from the tag's bottom-left.
+    pub corners: [[f64; 2]; 4],
+    /// Bit errors corrected when decoding.
+    pub hamming: u32,
+    /// Decision margin: the quad detector's for `quad` tags, the mean white − black
+    /// cell level for `layout` tags.
+    pub margin: f64,
+    /// Grey-level step across the tag's outer edges.
+    pub contrast: f64,
+    /// RMS distance (px) of the measured edge points from the fitted sides.
+    pub edge_rms: f64,
+    /// `quad` (found by the quad detector) or `layout` (predicted from the board
+    /// layout, then measured and its bits verified).
+    pub source: &'static str,
+}
+
+/// One measured point, named as the session names it.
+#[derive(Clone, Debug, Serialize)]
+pub struct PointDetection {
+    pub point: String,
+    pub u: f64,
+    pub v: f64,
+    /// Board coordinates (m) for AprilGrid corners.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub board: Option<[f64; 3]>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Rejection {
+    pub id: u32,
+    pub reason: String,
+}
+
+/// Everything found in one image.
+#[derive(Clone, Debug, Serialize)]
+pub struct ImageDetections {
+    pub width: usize,
+    pub height: usize,
+    pub tags: Vec<TagDetection>,
+    pub points: Vec<PointDetection>,
+    /// Candidates found and then refused, with why.
+    pub rejected: Vec<Rejection>,
+}
+
+/// What the detector looks for, from the session's targets.
+enum Wanted<'a> {
+    Grid(&'a str, GridLayout),
+    Tags(&'a str, Option<&'a [u32]>),
+}
+
+fn wanted(targets: &[TargetSpec]) -> Vec<Wanted<'_>> {
+    targets
+        .iter()
+        .filter_map(|t| match t {
+            TargetSpec::Aprilgrid { id, .. } => Some(Wanted::Grid(id, GridLayout::of(t)?)),
+            TargetSpec::Apriltags { id, ids, .. } => Some(Wanted::Tags(id, ids.as_deref())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Detect the AprilTag targets of `targets` in `img`.
+pub fn detect_tags(
+    img: &Gray,
+    targets: &[TargetSpec],
+    camera: Option<&Camera>,
+    opts: &DetectOptions,
+) -> Result<ImageDetections, String> {
+    let lens = Lens(camera);
+    let wanted = wanted(targets);
+    // Every pass below segments with the same contrast floor: the noise is estimated once.
+    let base = quads::QuadOptions {
+        min_contrast: Some(opts.quads.contrast_for(img)),
+        ..opts.quads.clone()
+    };
+    let px = img.to_u8();
+    let (w, h) = (img.width, img.height);
+    let mut candidates = quads::detect_pixels(&px, w, h, &base)?;
+    // Single tags have no layout to complete them from, and the decimated search loses
+    // small oblique ones (9 in 10 of those missed among 120 views of 24-40 px tags at up
+    // to 60° were found at full resolution): a full-resolution pass adds the ids the first
+    // one did not find (~10 ms on 1600×1200 with the noise-adaptive contrast floor).
+    if base.decimate > 1.0 && wanted.iter().any(|w| matches!(w, Wanted::Tags(..))) {
+        let full = quads::QuadOptions {
+            decimate: 1.0,
+            ..base.clone()
+        };
+        let first: std::collections::BTreeSet<u32> = candidates.iter().map(|c| c.id).collect();
+        candidates.extend(
+            quads::detect_pixels(&px, w, h, &full)?
+                .into_iter()
+                .filter(|c| !first.contains(&c.id)),
+        );
+    }
+    let mut rejected = Vec::new();
+    let mut refined = refine_candidates(
+        img,
+        candidates,
+        lens,
+        opts.quads.max_hamming,
+        opts.threads,
+        &mut rejected,
+    );
+    // A board with no seed at all gets a second search, at full resolution on a copy
+    // whose bright areas are grown by a pixel, for its ids only: Kalibr's crossing
+    // squares touch every tag corner, and where blur and decimation keep the contact
+    // (small or oblique boards: 1 view in 10 lost the whole board at 30 px tags) the
+    // first pass finds no quad at all. The grown copy thins black bits, so every id it
+    // decodes is read again from the image itself before it counts.
+    let seedless: Vec<&GridLayout> = wanted
+        .iter()
+        .filter_map(|w| match w {
+            Wanted::Grid(_, layout) if !layout.ids().any(|id| refined.contains_key(&id)) => {
+                Some(layout)
+            }
+            _ => None,
+        })
+        .collect();
+    if !seedless.is_empty() {
+        let grown = quads::QuadOptions {
+            decimate: 1.0,
+            grow_bright: true,
+            ..base.clone()
+        };
+        let max_h = opts.quads.max_hamming;
+        let again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?
+            .into_iter()
+            .filter(|c| seedless.iter().any(|l| l.cell_of(c.id).is_some()))
+            .collect();
+        let mut second = Vec::new();
+        let found: BTreeMap<u32, grid::Found> =
+            refine_candidates(img, again, lens, max_h, opts.threads, &mut second)
+                .into_iter()
+                .filter(|(id, f)| {
+                    let reading = verify::read_tag(img, &f.refined.corners, lens, *id);
+                    let ok = reading
+                        .as_ref()
+                        .is_some_and(|r| r.hamming <= max_h && r.border_black >= 26);
+                    if !ok {
+                        second.push(Rejection {
+                            id: *id,
+                            reason: format!(
+                                "tag {id}: found on the bright-grown image but its bits do not read as {id} in the image"
+                            ),
+                        });
+                    }
+                    ok
+                })
+                .collect();
+        // Ids refused in the first pass and found now are no longer refused.
+        rejected.retain(|r| !found.contains_key(&r.id));
+        // (A refusal repeated by the second pass is said once.)
+        second.retain(|r| !rejected.iter().any(|q| q.id == r.id));
+        rejected.extend(second);
+        refined.extend(found);
+    }
+    let mut tags = Vec::new();
+    let mut points = Vec::new();
+    let mut border = Vec::new();
+    let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
+        if opts.whole_tag_fit {
+            whole_tag_corners(img, &f.refined.corners, lens, id, layout)
+        } else {
+            f.refined.corners
+        }
+    };
+    let mut emit = |target: &str,
+                    id: u32,
+                    f: &grid::Found,
+                    c: &[Vec2; 4],
+                    layout: Option<&GridLayout>| {
+        tags.push(TagDetection {
+            target: target.to_string(),
+            id,
+            corners: [0, 1, 2, 3].map(|k| [c[k].x, c[k].y]),
+            hamming: f.hamming,
+            margin: f.margin,
+            contrast: f.refined.contrast,
+            edge_rms: f.refined.edge_rms,
+            source: if f.predicted { "layout" } else { "quad" },
+        });
+        for (k, p) in c.iter().enumerate() {
+            if !measured_inside(img, p) {
+                border.push(Rejection {
+                    id,
+                    reason: format!(
+                        "tag {id} corner {k}: within {BORDER_MARGIN} px of the image border, where its sides cannot be measured"
+                    ),
+                });
+                continue;
+            }
+            points.push(PointDetection {
+                point: format!("tag:{id}:{k}"),
+                u: p.x,
+                v: p.y,
+                board: layout
+                    .and_then(|l| l.corner(id, k))
+                    .map(|b| [b.x, b.y, 0.0]),
+            });
+        }
+    };
+    // Boards first: their ids are theirs.
+    for w in &wanted {
+        if let Wanted::Grid(name, layout) = w {
+            let seeds: BTreeMap<u32, grid::Found> = layout
+                .ids()
+                .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
+                .collect();
+            if seeds.is_empty() {
+                continue;
+            }
+            let mut rej = Vec::new();
+            let max_h = opts.quads.max_hamming;
+            let completed: Vec<(u32, grid::Found)> =
+                grid::complete(img, layout, seeds, lens, max_h, &mut rej)
+                    .into_iter()
+                    .collect();
+            let fitted = par_map(&completed, opts.threads, |(id, f)| {
+                finish(*id, f, Some(layout))
+            });
+            let board: Vec<(u32, grid::Found, [Vec2; 4])> = completed
+                .into_iter()
+                .zip(fitted)
+                .map(|((id, f), c)| (id, f, c))
+                .collect();
+            let corners: BTreeMap<u32, [Vec2; 4]> =
+                board.iter().map(|(id, _, c)| (*id, *c)).collect();
+            let off = grid::inconsistent(layout, &corners, lens);
+            for (id, f, c) in &board {
+                match off.get(id) {
+                    Some(dev) => rej.push((
+                        *id,
+                        format!("tag {id}: measured {dev:.1} px from where its neighbours on the board put it (its edges were found on the wrong transitions)"),
+                    )),
+                    None => emit(name, *id, f, c, Some(layout)),
+                }
+            }
+            rejected.extend(rej.into_iter().map(|(id, reason)| Rejection { id, reason }));
+        }
+    }
+    for w in &wanted {
+        if let Wanted::Tags(name, ids) = w {
+            let take: Vec<u32> = refined
+                .keys()
+                .copied()
+                .filter(|id| ids.is_none_or(|l| l.contains(id)))
+                .collect();
+            let found: Vec<(u32, grid::Found)> = take
+                .into_iter()
+                .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
+                .collect();
+            let fitted = par_map(&found, opts.threads, |(id, f)| finish(*id, f, None));
+            for ((id, f), c) in found.iter().zip(&fitted) {
+                emit(name, *id, f, c, None);
+            }
+        }
+    }
+    // A candidate refused early and then found through the layout is not refused.
+    rejected.retain(|r| !tags.iter().any(|t| t.id == r.id));
+    rejected.extend(border);
+    for id in refined.keys() {
+        rejected.push(Rejection {
+            id: *id,
+            reason: format!("tag {id} belongs to none of the session's targets"),
+        });
+    }
+    Ok(ImageDetections {
+        width: img.width,
+        height: img.height,
+        tags,
+        points,
+        rejected,
+    })
+}
+
+/// How far inside the image (px) a corner must lie to be reported: the edge measurement
+/// reads ±2.5 px across a side ([`refine`]), so closer to the border some of the pixels
+/// that would measure it are not in the image, and a corner completed from the layout or
+/// extrapolated from the sides may even lie outside it.
+pub const BORDER_MARGIN: f64 = 3.0;
+
+/// Is the corner at `p` measured by pixels inside the image?
+fn measured_inside(img: &Gray, p: &Vec2) -> bool {
+    p.x.is_finite()
+        && p.y.is_finite()
+        && p.x >= BORDER_MARGIN
+        && p.y >= BORDER_MARGIN
+        && p.x <= img.width as f64 - 1.0 - BORDER_MARGIN
+        && p.y <= img.height as f64 - 1.0 - BORDER_MARGIN
+}
+
+/// The corners a tag is reported with: a tag too small for the edge measurement's room
+/// is fitted whole ([`tagfit`]), from the edge-refined corners; where that fit does not
+/// settle the edge-refined corners stand.
+fn whole_tag_corners(
+    img: &Gray,
+    corners: &[Vec2; 4],
+    lens: Lens,
+    id: u32,
+    layout: Option<&GridLayout>,
+) -> [Vec2; 4] {
+    if tagfit::shallowest_extent(corners) >= tagfit::WHOLE_FIT_BELOW_PX {
+        return *corners;
+    }
+    let surround = match layout {
+        Some(l) => tagfit::Surround::Grid {
+            gap_cells: l.spacing * rigcal_core::target::tag36h11::WIDTH_AT_BORDER as f64,
+        },
+        None => tagfit::Surround::Single,
+    };
+    tagfit::fit_whole_tag(img, corners, lens, id, surround).map_or(*corners, |f| f.corners)
+}
+
+/// Refine every candidate whose id appears once in the image (an id seen twice is
+/// ambiguous: neither copy is used); refusals go to `rejected` with why.
+fn refine_candidates(
+    img: &Gray,
+    candidates: Vec<quads::Candidate>,
+    lens: Lens,
+    max_hamming: u32,
+    threads: usize,
+    rejected: &mut Vec<Rejection>,
+) -> BTreeMap<u32, grid::Found> {
+    let mut count: BTreeMap<u32, usize> = BTreeMap::new();
+    for c in &candidates {
+        *count.entry(c.id).or_default() += 1;
+    }
+    let (unique, repeated): (Vec<_>, Vec<_>) =
+        candidates.into_iter().partition(|c| count[&c.id] == 1);
+    for c in repeated {
+        rejected.push(Rejection {
+            id: c.id,
+            reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
+        });
+    }
+    let results = par_map(&unique, threads, |c| {
+        refine_candidate(img, c, lens, max_hamming)
+    });
+    let mut refined = BTreeMap::new();
+    for (c, r) in unique.into_iter().zip(results) {
+        match r {
+            Some(r) => {
+                refined.insert(
+                    c.id,
+                    grid::Found {
+                        refined: r,
+                        hamming: c.hamming,
+                        margin: c.margin,
+                        predicted: false,
+                    },
+                );
+            }
+            None => rejected.push(Rejection {
+                id: c.id,
+                reason: format!(
+                    "tag {}: its edges could not be measured (cut by the image border, too small or blurred)",
+                    c.id
+                ),
+            }),
+        }
+    }
+    refined
+}
+
+/// Refine a quad-detector candidate. In AprilGrids the quad sometimes runs one corner
+/// out along a crossing square (10 px and more); then each corner in turn is replaced by
+/// the parallelogram completion of the other three, and the variant whose sides measure
+/// cleanly and whose bits read as the candidate's id is kept.
+fn refine_candidate(
+    img: &Gray,
+    c: &quads::Candidate,
+    lens: Lens,
+    max_hamming: u32,
+) -> Option<refine::Refined> {
+    if let Some(r) = refine_quad(img, &c.corners, lens, QUAD_REACH) {
+        return Some(r);
+    }
+    let q = &c.corners;
+    (0..4)
+        .filter_map(|k| {
+            let mut v = *q;
+            v[k] = q[(k + 1) % 4] + q[(k + 3) % 4] - q[(k + 2) % 4];
+            let r = refine_quad(img, &v, lens, QUAD_REACH)?;
+            let reading = verify::read_tag(img, &r.corners, lens, c.id)?;
+            (reading.hamming <= max_hamming && reading.border_black >= 26).then_some(r)
+        })
+        .min_by(|a, b| a.edge_rms.total_cmp(&b.edge_rms))
+}
+
+/// Corner `k` of a detection as a vector.
+pub fn corner(t: &TagDetection, k: usize) -> Vec2 {
+    Vec2::new(t.corners[k][0], t.corners[k][1])
+}

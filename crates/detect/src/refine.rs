@@ -1,0 +1,526 @@
+//! Subpixel corners from the tag's outer edges: the quad fit of the detector is only a
+//! starting point.
+//!
+//! Each side of the black square is sampled across (profiles normal to the side, one
+//! per pixel of its length, about a cell clear of the corners where AprilGrid crossing
+//! squares touch it). On each profile the edge is where the grey level crosses the mean of the levels
+//! at `±d` around it — for a symmetric blur that is exactly the edge, whatever the
+//! contrast and shading. The edge points of a side are moved to undistorted normalised
+//! coordinates (with the camera, so sides are straight lines even under strong
+//! distortion), fitted by total least squares with outliers trimmed, and the corners
+//! are the intersections of adjacent sides, projected back to raw pixels. Two passes,
+//! the second sampling along the first's sides.
+
+use super::gray::Gray;
+use rigcal_core::geometry::line2::{distance, fit_line, intersect};
+use rigcal_core::geometry::{normal_cdf, Camera, Vec2, Vec3};
+
+/// Maps between raw pixels and the plane where a tag's sides are straight.
+#[derive(Clone, Copy)]
+pub struct Lens<'a>(pub Option<&'a Camera>);
+
+impl Lens<'_> {
+    pub fn to_plane(&self, px: Vec2) -> Option<Vec2> {
+        match self.0 {
+            Some(c) => c.unproject(&px),
+            None => Some(px),
+        }
+    }
+
+    /// A quad's corners in the plane.
+    pub fn quad_to_plane(&self, c: &[Vec2; 4]) -> Option<[Vec2; 4]> {
+        Some([
+            self.to_plane(c[0])?,
+            self.to_plane(c[1])?,
+            self.to_plane(c[2])?,
+            self.to_plane(c[3])?,
+        ])
+    }
+
+    pub fn to_pixel(&self, q: Vec2) -> Option<Vec2> {
+        match self.0 {
+            Some(c) => c.project(&Vec3::new(q.x, q.y, 1.0)),
+            None => Some(q),
+        }
+    }
+}
+
+/// A refined quad and how well its sides fit.
+#[derive(Clone, Debug)]
+pub struct Refined {
+    pub corners: [Vec2; 4],
+    /// RMS distance (px) of the edge points from their fitted sides.
+    pub edge_rms: f64,
+    /// Mean grey-level step across the sides (white − black).
+    pub contrast: f64,
+}
+
+/// Where along the profile `s ↦ I(p + s·n)` (dark at `s < 0`, bright at `s > 0`) the
+/// edge crosses, searched within `±reach` of 0, with symmetric levels at `±d`; to within
+/// `tol` px (the crossing is the measurement itself only where the pixel-model fit
+/// cannot run; elsewhere it is a start and a coarse `tol` saves most of the samples).
+fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Option<(f64, f64)> {
+    let at = |s: f64| img.sample(p + n * s);
+    // Coarse: the steepest dark→bright step, from one sampling of the profile every ¼ px
+    // (the step at s is I(s + ½) − I(s − ½), two samples apart).
+    let step = 0.25;
+    let k = (reach / step).ceil() as i32;
+    let levels: Vec<f64> = (-k - 2..=k + 2)
+        .map(|i| at(i as f64 * step))
+        .collect::<Option<_>>()?;
+    let mut best = (f64::NEG_INFINITY, 0.0);
+    for i in 0..=(2 * k) as usize {
+        let g = levels[i + 4] - levels[i];
+        if g > best.0 {
+            best = (g, (i as i32 - k) as f64 * step);
+        }
+    }
+    if best.0 <= 0.0 {
+        return None;
+    }
+    let mut e = best.1;
+    let mut contrast = 0.0;
+    for _ in 0..3 {
+        let (dark, bright) = (at(e - d)?, at(e + d)?);
+        contrast = bright - dark;
+        if contrast <= 0.0 {
+            return None;
+        }
+        let mid = 0.5 * (dark + bright);
+        // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge).
+        let (mut lo, mut hi) = (e - d, e + d);
+        while hi - lo > tol {
+            let m = 0.5 * (lo + hi);
+            if at(m)? < mid {
+                lo = m;
+            } else {
+                hi = m;
+            }
+        }
+        let next = 0.5 * (lo + hi);
+        let moved = (next - e).abs();
+        e = next;
+        if e.abs() > reach + d || moved < tol {
+            break;
+        }
+    }
+    (e.abs() <= reach + d).then_some((e, contrast))
+}
+
+/// Crossing tolerance (px) where it is the measurement, and where it only starts the
+/// pixel-model fit or the coarse pass.
+const CROSSING_TOL: f64 = 1e-3;
+const START_TOL: f64 = 0.03;
+
+/// Smallest half-width (px) of the pixel-model edge fit: from ±2.5 px its bias on a
+/// blurred step is under 0.005 px for optics σ 0.4-1.6 px; at ±1.85 px it reaches
+/// 0.06 px for σ 0.5 (1-D study of the fit on exact pixel samples).
+const MIN_FIT_WINDOW: f64 = 2.5;
+
+/// Half-width (px) of the band of pixels along a profile that its edge fit reads. With
+/// one profile per pixel of side, neighbouring edge points share pixels (and noise):
+/// only points `2·FIT_BAND + 1` profiles apart are independent.
+pub const FIT_BAND: f64 = 1.0;
+
+/// The edge on a profile from the pixels around it, not from interpolated samples.
+///
+/// Why: the mid-level crossing of a bilinearly interpolated blurred step is off by up to
+/// 0.02 px (optics σ 0.8 px), depending on where the edge falls between pixel centres. A
+/// blurred step is not band-limited at the pixel pitch, so no interpolator removes this
+/// (Keys' cubic does no better). Along a side nearly parallel to a pixel row or column
+/// the phase changes slowly, so the error does not average out over the side: it bends
+/// the points and tilts the fitted line (seen: ±0.02 px swings along a side 1° off
+/// vertical in the ring's auxiliary image 7, ±0.006 px with this fit). Model: a pixel
+/// centre at signed distance `s` along the profile has grey level `a + b·Φ((s − e)/σ)`
+/// (a step blurred by the optics and the pixel's own area, close to Gaussian), the same at
+/// every offset along the edge; `a, b, e, σ` by Gauss-Newton from the pixels within
+/// `half_window` of `e0` and one pixel either side of the profile. `None` when the fit
+/// does not settle (the caller keeps `e0`).
+fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f64) -> Option<f64> {
+    let t = Vec2::new(-n.y, n.x);
+    let centre = p + n * e0;
+    let r = half_window + 1.5;
+    let (x0, x1) = ((centre.x - r).floor().max(0.0), (centre.x + r).ceil());
+    let (y0, y1) = ((centre.y - r).floor().max(0.0), (centre.y + r).ceil());
+    if x1 >= img.width as f64 || y1 >= img.height as f64 {
+        return None;
+    }
+    let mut samples: Vec<(f64, f64)> = Vec::with_capacity(32);
+    for y in y0 as usize..=y1 as usize {
+        for x in x0 as usize..=x1 as usize {
+            let c = Vec2::new(x as f64, y as f64) - p;
+            let s = n.dot(&c);
+            if t.dot(&c).abs() <= FIT_BAND && (s - e0).abs() <= half_window {
+                samples.push((s, img.data[y * img.width + x] as f64));
+            }
+        }
+    }
+    if samples.len() < 8 {
+        return None;
+    }
+    // Start: the interpolated crossing, levels from the contrast, σ of a typical lens.
+    let mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len() as f64;
+    let mut x = nalgebra::Vector4::new(mean - 0.5 * contrast, contrast, e0, 0.9);
+    let mut lambda = 1e-3;
+    let cost = |x: &nalgebra::Vector4<f64>| -> f64 {
+        samples
+            .iter()
+            .map(|(s, v)| (x[0] + x[1] * normal_cdf((s - x[2]) / x[3]) - v).powi(2))
+            .sum()
+    };
+    let mut current = cost(&x);
+    let mut converged = false;
+    for _ in 0..20 {
+        let mut jtj = nalgebra::Matrix4::<f64>::zeros();
+        let mut jtr = nalgebra::Vector4::<f64>::zeros();
+        for (s, v) in &samples {
+            let z = (s - x[2]) / x[3];
+            let pdf = (-0.5 * z * z).exp() / (2.0 * std::f64::consts::PI).sqrt();
+            let r = x[0] + x[1] * normal_cdf(z) - v;
+            let j = nalgebra::Vector4::new(
+                1.0,
+                normal_cdf(z),
+                -x[1] * pdf / x[3],
+                -x[1] * pdf * z / x[3],
+            );
+            jtj += j * j.transpose();
+            jtr += j * r;
+        }
+        let mut improved = false;
+        for _ in 0..8 {
+            let mut a = jtj;
+            for k in 0..4 {
+                a[(k, k)] *= 1.0 + lambda;
+            }
+            let step = a.lu().solve(&(-jtr))?;
+            let next = x + step;
+            if next[3] > 0.2 && next[3] < 4.0 {
+                let c = cost(&next);
+                if c < current {
+                    converged = step[2].abs() < 1e-5;
+                    x = next;
+                    current = c;
+                    lambda = (lambda * 0.3).max(1e-9);
+                    improved = true;
+                    break;
+                }
+            }
+            lambda *= 10.0;
+        }
+        if !improved || converged {
+            break;
+        }
+    }
+    ((x[2] - e0).abs() < 1.0 && x[1] > 0.0).then_some(x[2])
+}
+
+/// How a polygon's sides are sampled: the fraction of each side kept clear of its
+/// corners, and how far (px) the nearest other edge may be from a side (levels are read
+/// and edges searched only well within that).
+#[derive(Clone, Copy, Debug)]
+pub struct SideSampling {
+    pub corner_clearance: f64,
+    /// Room (px) either side of a side, across it.
+    pub room: fn(&SideExtent) -> f64,
+    /// How far a corner may move in a pass beyond the search reach, as a fraction of the
+    /// shortest side: rough corners found by thresholding lose the tips of acute corners
+    /// (seen: 11 px on a 190 px side at grazing view), while the sides' lines are right.
+    pub corner_slack: f64,
+}
+
+/// What a side's room is judged from (raw pixels).
+#[derive(Clone, Copy, Debug)]
+pub struct SideExtent {
+    /// The side's length.
+    pub len: f64,
+    /// The polygon's shortest side.
+    pub shortest: f64,
+    /// The polygon's extent across the side: the farthest corner from its line.
+    pub across: f64,
+}
+
+/// A tag's black square: profiles ~1 cell clear of the corners (AprilGrid crossing
+/// squares touch them), within the one-cell border — a border cell measured across the
+/// side (an eighth of the tag's extent that way), not along it: on a tag foreshortened
+/// 2:1 the long sides' cells are half as deep as they are long, and levels read a cell
+/// along reached into the bits (seen: corners 0.34 px off at 57 × 26 px).
+pub const TAG_SIDES: SideSampling = SideSampling {
+    corner_clearance: 0.12,
+    room: |side| side.across / 8.0,
+    corner_slack: 0.0,
+};
+
+/// A refined dark polygon on a bright ground, in the plane where its sides are straight.
+#[derive(Clone, Debug)]
+pub struct RefinedPolygon {
+    /// Corners in raw pixels, in the order given.
+    pub corners: Vec<Vec2>,
+    /// Per side (from corner k to k+1): the edge points kept by the fit, raw pixels.
+    pub side_points: Vec<Vec<Vec2>>,
+    /// Per side: `[a, b, c]` with `a·x + b·y + c = 0`, `a² + b² = 1`, in the plane.
+    pub side_lines: Vec<Vec3>,
+    pub edge_rms: f64,
+    pub contrast: f64,
+}
+
+/// Refine a tag's black square. `corners` in raw pixels, counter-clockwise in the tag's
+/// frame (any consistent order round the quad works); `reach` (px) is how far the true
+/// sides may be from the given ones.
+pub fn refine_quad(img: &Gray, corners: &[Vec2; 4], lens: Lens, reach: f64) -> Option<Refined> {
+    let r = refine_polygon(img, corners, lens, reach, &TAG_SIDES)?;
+    Some(Refined {
+        corners: [r.corners[0], r.corners[1], r.corners[2], r.corners[3]],
+        edge_rms: r.edge_rms,
+        contrast: r.contrast,
+    })
+}
+
+/// Refine any simple dark polygon (convex or not) from rough corners in raw pixels:
+/// two passes of side sampling, the second along the first's sides.
+pub fn refine_polygon(
+    img: &Gray,
+    corners: &[Vec2],
+    lens: Lens,
+    reach: f64,
+    sampling: &SideSampling,
+) -> Option<RefinedPolygon> {
+    let mut plane: Vec<Vec2> = corners
+        .iter()
+        .map(|c| lens.to_plane(*c))
+        .collect::<Option<_>>()?;
+    let mut reach = reach;
+    let mut last = None;
+    for fine in [false, true] {
+        let pass = refine_once(img, &plane, lens, reach, sampling, fine)?;
+        plane = pass.corners.clone();
+        last = Some(pass);
+        reach = 1.0;
+    }
+    let pass = last?;
+    Some(RefinedPolygon {
+        corners: plane
+            .iter()
+            .map(|q| lens.to_pixel(*q))
+            .collect::<Option<_>>()?,
+        side_points: pass.side_points,
+        side_lines: pass.lines,
+        edge_rms: pass.edge_rms,
+        contrast: pass.contrast,
+    })
+}
+
+struct Pass {
+    corners: Vec<Vec2>,
+    lines: Vec<Vec3>,
+    side_points: Vec<Vec<Vec2>>,
+    edge_rms: f64,
+    contrast: f64,
+}
+
+/// Profile spacing (px) of the first pass, which only has to bring the sides within the
+/// second pass's 1 px reach: a third of the profiles, and no pixel-model fit.
+const COARSE_SPACING: f64 = 3.0;
+
+/// One pass of side sampling. `fine`: one profile per pixel and the pixel-model edge fit
+/// (the measurement); otherwise every [`COARSE_SPACING`] px, interpolated crossings only.
+fn refine_once(
+    img: &Gray,
+    plane: &[Vec2],
+    lens: Lens,
+    reach: f64,
+    sampling: &SideSampling,
+    fine: bool,
+) -> Option<Pass> {
+    let n_sides = plane.len();
+    if n_sides < 3 {
+        return None;
+    }
+    let px: Vec<Vec2> = plane
+        .iter()
+        .map(|q| lens.to_pixel(*q))
+        .collect::<Option<_>>()?;
+    // Orientation in raw pixels: the outward normal of side a→b is sign·(t.y, −t.x).
+    let area2: f64 = (0..n_sides)
+        .map(|k| {
+            let (a, b) = (px[k], px[(k + 1) % n_sides]);
+            a.x * b.y - a.y * b.x
+        })
+        .sum();
+    let outward = if area2 >= 0.0 { 1.0 } else { -1.0 };
+    let shortest = (0..n_sides)
+        .map(|k| (px[(k + 1) % n_sides] - px[k]).norm())
+        .fold(f64::INFINITY, f64::min);
+    let mut lines = Vec::with_capacity(n_sides);
+    let mut side_points = Vec::with_capacity(n_sides);
+    let (mut sq, mut count, mut contrast_sum, mut contrast_n) = (0.0, 0usize, 0.0, 0usize);
+    for side in 0..n_sides {
+        let (a, b) = (plane[side], plane[(side + 1) % n_sides]);
+        let len_px = (px[(side + 1) % n_sides] - px[side]).norm();
+        if len_px < 6.0 {
+            return None;
+        }
+        let (pa, pb) = (px[side], px[(side + 1) % n_sides]);
+        let normal = Vec2::new(pb.y - pa.y, pa.x - pb.x) / len_px.max(1e-300);
+        let across = px
+            .iter()
+            .map(|v| (v - pa).dot(&normal).abs())
+            .fold(0.0, f64::max);
+        let room = (sampling.room)(&SideExtent {
+            len: len_px,
+            shortest,
+            across,
+        });
+        // Levels at ±d: the farther from the edge the closer to the plateaus, the nearer
+        // the bits or the next edge. 0.35 of the room (it was 0.45) cut corner RMS on 10
+        // of the 12 cells and boards measured (grids 0.029-0.033 → 0.027-0.030 px, the
+        // 38 px board at 56° 0.106 → 0.089); 0.28 was worse everywhere.
+        let d = (0.35 * room).clamp(0.5, 2.5);
+        let reach_here = reach.min(0.9 * room);
+        let t0 = sampling.corner_clearance;
+        let span = 1.0 - 2.0 * t0;
+        let spacing = if fine { 1.0 } else { COARSE_SPACING };
+        let samples = (len_px * span / spacing).ceil().max(6.0) as usize;
+        let mut pts = Vec::with_capacity(samples);
+        for i in 0..samples {
+            let t = t0 + span * (i as f64 + 0.5) / samples as f64;
+            let q = a + (b - a) * t;
+            let p = lens.to_pixel(q)?;
+            let dt = 1e-3;
+            let p2 = lens.to_pixel(a + (b - a) * (t + dt))?;
+            let tangent = (p2 - p).normalize();
+            let n = Vec2::new(tangent.y, -tangent.x) * outward;
+            // The pixel model needs the levels either side: ±2.5 px at least (below
+            // that its four unknowns are poorly separated and the interpolated crossing
+            // is the better estimate).
+            let window = (d + 0.5).min(0.9 * room);
+            let fit = fine && window >= MIN_FIT_WINDOW;
+            let tol = if fine && !fit {
+                CROSSING_TOL
+            } else {
+                START_TOL
+            };
+            if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d, tol) {
+                let e = if fit {
+                    // Where the fit does not settle, the precise crossing instead.
+                    fit_edge(img, p, n, e, window, contrast)
+                        .or_else(|| Some(edge_offset(img, p, n, reach_here, d, CROSSING_TOL)?.0))
+                        .unwrap_or(e)
+                } else {
+                    e
+                };
+                if let Some(q) = lens.to_plane(p + n * e) {
+                    pts.push((q, p + n * e));
+                    contrast_sum += contrast;
+                    contrast_n += 1;
+                }
+            }
+        }
+        if pts.len() < 4 {
+            return None;
+        }
+        let plane_pts: Vec<Vec2> = pts.iter().map(|p| p.0).collect();
+        let mut line = fit_line(&plane_pts)?;
+        // Trim outliers (a blot, a finger, a neighbouring edge) and refit.
+        let scale = len_px / (b - a).norm().max(1e-300);
+        let res: Vec<f64> = plane_pts
+            .iter()
+            .map(|q| distance(&line, q).abs() * scale)
+            .collect();
+        let mut sorted = res.clone();
+        sorted.sort_by(|x, y| x.total_cmp(y));
+        let med = sorted[sorted.len() / 2];
+        let kept: Vec<(Vec2, Vec2)> = pts
+            .iter()
+            .zip(&res)
+            .filter(|(_, r)| **r <= (3.0 * 1.4826 * med).max(0.05))
+            .map(|(p, _)| *p)
+            .collect();
+        if kept.len() >= 4 {
+            let keep: Vec<Vec2> = kept.iter().map(|p| p.0).collect();
+            line = fit_line(&keep)?;
+        }
+        let kept = if kept.len() >= 4 { kept } else { pts };
+        for (q, _) in &kept {
+            let r = distance(&line, q) * scale;
+            sq += r * r;
+            count += 1;
+        }
+        lines.push(line);
+        side_points.push(kept.into_iter().map(|p| p.1).collect());
+    }
+    let mut out = Vec::with_capacity(n_sides);
+    for k in 0..n_sides {
+        // Corner k joins side k−1 (from corner k−1) and side k (to corner k+1).
+        out.push(intersect(&lines[(k + n_sides - 1) % n_sides], &lines[k])?);
+    }
+    // A refined polygon far from its start is a different edge, not a refinement.
+    for k in 0..n_sides {
+        let moved = (lens.to_pixel(out[k])? - px[k]).norm();
+        if moved > reach + 2.0 + sampling.corner_slack * shortest {
+            return None;
+        }
+    }
+    Some(Pass {
+        corners: out,
+        lines,
+        side_points,
+        edge_rms: (sq / count.max(1) as f64).sqrt(),
+        contrast: contrast_sum / contrast_n.max(1) as f64,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn lines_fit_and_intersect_in_any_orientation() {
+        let v: Vec<Vec2> = (0..10).map(|i| Vec2::new(3.0, i as f64)).collect();
+        let h: Vec<Vec2> = (0..10).map(|i| Vec2::new(i as f64, -2.0)).collect();
+        let p = intersect(&fit_line(&v).unwrap(), &fit_line(&h).unwrap()).unwrap();
+        assert!((p - Vec2::new(3.0, -2.0)).norm() < 1e-12);
+    }
+
+    /// A dark square turned 1° (its sides sweep every phase between pixel centres slowly,
+    /// the worst case for interpolated crossings), rendered with blur and no noise:
+    /// corners to 0.02 px from rough corners 0.7 px off (0.006-0.015 measured; the
+    /// interpolated crossings alone gave 0.036-0.049).
+    #[test]
+    fn corners_of_a_nearly_axis_aligned_square_are_exact() {
+        use rigcal_core::geometry::Pose;
+        use rigcal_synth::render::{render, RenderOptions};
+        let (f, size) = (100.0, 121u32);
+        let c = (size / 2) as f64;
+        let cam = Camera::pinhole(f, f, c, c, size, size);
+        let pose = Pose::new(nalgebra::Matrix3::identity(), Vec3::new(0.0, 0.0, 1.0));
+        let turn = 1f64.to_radians();
+        let (cs, sn) = (turn.cos(), turn.sin());
+        let half = 0.3; // board units: 60 px across
+        let inside = move |x: f64, y: f64| {
+            let (u, v) = (cs * x + sn * y, -sn * x + cs * y);
+            u.abs() < half && v.abs() < half
+        };
+        let opts = RenderOptions {
+            noise_sigma: 0.0,
+            ..Default::default()
+        };
+        let img = render(&cam, &pose, &|x, y| Some(!inside(x, y)), &opts);
+        let gray = Gray::from_luma8(&img);
+        let truth: [Vec2; 4] =
+            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| {
+                let (x, y) = (half * a, half * b);
+                Vec2::new(c + f * (cs * x - sn * y), c + f * (sn * x + cs * y))
+            });
+        let rough = [
+            truth[0] + Vec2::new(0.7, -0.4),
+            truth[1] + Vec2::new(-0.5, 0.6),
+            truth[2] + Vec2::new(0.3, 0.7),
+            truth[3] + Vec2::new(-0.7, -0.2),
+        ];
+        let r = refine_quad(&gray, &rough, Lens(None), 2.0).expect("refined");
+        for k in 0..4 {
+            let err = (r.corners[k] - truth[k]).norm();
+            assert!(err < 0.02, "corner {k}: {err:.4} px");
+        }
+    }
+}

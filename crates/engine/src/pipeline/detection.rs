@@ -1,0 +1,419 @@
+//! The detection stage: every image a session names and that has no detections yet is
+//! read, checked (header, size, complete decode), and searched for the session's
+//! AprilTag targets; the measured corners become that frame's observations. Images run
+//! in parallel over the cores. A bad image is skipped with its reason — the rest of the
+//! session still calibrates — and the report lists what each image gave.
+
+use super::{enter, Cancelled, Progress};
+use rigcal_core::result::{DetectionReport, ImageReport};
+use rigcal_core::session::{
+    from_manifest, image_slots, ImageSlot, LineSpec, Method, ObservationSpec, Session, TargetSpec,
+};
+use rigcal_detect::imageio;
+use rigcal_detect::linetarget::{detect_line_targets, LineTargetDetection};
+use rigcal_detect::refine::Lens;
+use rigcal_detect::{detect_tags, gray::Gray, DetectOptions};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::sync::Mutex;
+use std::time::Instant;
+
+/// Default pixel budget of one image (the service's `--max-image-pixels`).
+pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 50_000_000;
+
+/// Where the stage reads a slot's bytes: files next to the manifest (CLI) or the
+/// service's blob store. An error here means the input is not available (a missing
+/// file, a lost blob, a storage failure): the job fails with `input_missing` naming the
+/// images, never with a verdict on a capture it could not read. (Bytes that are there
+/// but do not decode are the capture's fault: that image is skipped with its reason.)
+pub trait ImageSource: Sync {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String>;
+
+    fn max_pixels(&self) -> u64 {
+        DEFAULT_MAX_IMAGE_PIXELS
+    }
+}
+
+/// Images as files, paths relative to a directory (the manifest's).
+pub struct DirSource(pub PathBuf);
+
+impl ImageSource for DirSource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        let path = self.0.join(&slot.path);
+        std::fs::read(&path).map_err(|e| format!("cannot read {}: {e}", path.display()))
+    }
+}
+
+/// Images held in memory by the path the manifest names them with (benches, tests).
+pub struct MemorySource(pub std::collections::HashMap<String, Vec<u8>>);
+
+impl ImageSource for MemorySource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        self.0
+            .get(&slot.path)
+            .cloned()
+            .ok_or_else(|| format!("no image {}", slot.path))
+    }
+}
+
+/// No images available (a session of detections only).
+pub struct NoImages;
+
+impl ImageSource for NoImages {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        Err(format!("no image source for {}", slot.path))
+    }
+}
+
+/// Whether this build can detect the session's targets: AprilTag boards, or the line
+/// targets of a vanishing session.
+fn detectable(session: &Session) -> bool {
+    session.manifest.method == Method::Vanishing
+        || session.manifest.targets.iter().any(|t| {
+            matches!(
+                t,
+                TargetSpec::Aprilgrid { .. } | TargetSpec::Apriltags { .. }
+            )
+        })
+}
+
+/// Why the stage produced no session to calibrate.
+#[derive(Debug)]
+pub enum DetectionFailure {
+    Cancelled(Cancelled),
+    /// The detections did not make a valid session: a bug of this stage (it must only
+    /// emit what the session validation accepts), reported as such with the field the
+    /// validation refused, never replaced by the undetected session.
+    Inconsistent {
+        field: String,
+        expected: String,
+        report: DetectionReport,
+    },
+    /// Images whose bytes could not be read (field paths, with why).
+    InputMissing {
+        images: Vec<(String, String)>,
+        report: DetectionReport,
+    },
+}
+
+impl From<Cancelled> for DetectionFailure {
+    fn from(c: Cancelled) -> Self {
+        DetectionFailure::Cancelled(c)
+    }
+}
+
+/// Detect what can be detected. Returns the session with observations filled in (or
+/// the original, when there was nothing to do) and the report (`None` when the session
+/// named no image needing detection).
+pub fn detect_session(
+    session: &Session,
+    source: &dyn ImageSource,
+    progress: &dyn Progress,
+) -> Result<(Session, Option<DetectionReport>), DetectionFailure> {
+    let pending: Vec<(Option<usize>, ImageSlot)> = image_slots(session)
+        .into_iter()
+        .filter_map(|s| match s.frame_pos {
+            Some(fi) => {
+                let f = &session.manifest.frames[fi];
+                let done = f.observations.get(&s.camera).is_some_and(|o| !o.is_empty())
+                    || f.lines.get(&s.camera).is_some_and(|l| !l.is_empty());
+                (!done).then_some((Some(fi), s))
+            }
+            // A ring image (vanishing method): its slot's frame is the ring index.
+            None => {
+                let r = session.manifest.ring.iter().find(|r| r.index == s.frame)?;
+                r.lines.is_empty().then_some((None, s))
+            }
+        })
+        .collect();
+    if pending.is_empty() || !detectable(session) {
+        return Ok((session.clone(), None));
+    }
+    enter(progress, "detection")?;
+    let start = Instant::now();
+    let next = AtomicUsize::new(0);
+    let stop = AtomicBool::new(false);
+    let results: Mutex<Vec<Option<SlotOutcome>>> = Mutex::new(vec![None; pending.len()]);
+    let threads = std::thread::available_parallelism()
+        .map_or(1, |n| n.get())
+        .min(pending.len());
+    // Workers report each finished image; this thread forwards to `progress` (which
+    // is not shared across threads) and relays a cancel back.
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    std::thread::scope(|s| {
+        for _ in 0..threads {
+            let tx = tx.clone();
+            let (next, stop, results, pending) = (&next, &stop, &results, &pending);
+            s.spawn(move || loop {
+                if stop.load(Ordering::SeqCst) {
+                    break;
+                }
+                let i = next.fetch_add(1, Ordering::SeqCst);
+                let Some((_, slot)) = pending.get(i) else {
+                    break;
+                };
+                let out = detect_slot(session, slot, source);
+                if let Ok(mut r) = results.lock() {
+                    r[i] = Some(out);
+                }
+                let _ = tx.send(());
+            });
+        }
+        drop(tx);
+        let mut n = 0;
+        while rx.recv().is_ok() {
+            n += 1;
+            // The stage's share of a job is its first 5 %.
+            let fraction = 0.05 * n as f64 / pending.len() as f64;
+            if !progress.stage("detection", fraction) {
+                stop.store(true, Ordering::SeqCst);
+            }
+        }
+    });
+    if stop.load(Ordering::SeqCst) {
+        return Err(Cancelled("detection".into()).into());
+    }
+    // A worker that panicked poisons the lock: its image has no outcome and is reported
+    // as not detected below (the panic itself reaches the job's error through the
+    // worker's catch).
+    let results = results.into_inner().unwrap_or_else(|p| p.into_inner());
+    let mut manifest = session.manifest.clone();
+    let mut images = Vec::new();
+    for ((fi, slot), r) in pending.iter().zip(results) {
+        let Some((report, found)) = r else { continue };
+        // Detected (or skipped with a reason): no longer an image awaiting detection.
+        match fi {
+            Some(fi) => {
+                let frame = &mut manifest.frames[*fi];
+                frame.images.remove(&slot.camera);
+                match found {
+                    Found::Points(obs) if !obs.is_empty() => {
+                        frame.observations.insert(slot.camera.clone(), obs);
+                    }
+                    Found::Lines(lines) if !lines.is_empty() => {
+                        frame.lines.insert(slot.camera.clone(), lines);
+                    }
+                    _ => {}
+                }
+            }
+            None => {
+                if let Some(r) = manifest.ring.iter_mut().find(|r| r.index == slot.frame) {
+                    r.image = None;
+                    if let Found::Lines(lines) = found {
+                        r.lines = lines;
+                    }
+                }
+            }
+        }
+        images.push(report);
+    }
+    let unreadable: Vec<(String, String)> = images
+        .iter()
+        .filter(|r| r.unreadable)
+        .map(|r| (r.field.clone(), r.error.clone().unwrap_or_default()))
+        .collect();
+    let report = DetectionReport {
+        images_total: images.len(),
+        images_skipped: images.iter().filter(|r| r.error.is_some()).count(),
+        points_total: images.iter().map(|r| r.points).sum(),
+        seconds: start.elapsed().as_secs_f64(),
+        images,
+    };
+    if !unreadable.is_empty() {
+        return Err(DetectionFailure::InputMissing {
+            images: unreadable,
+            report,
+        });
+    }
+    match from_manifest(manifest) {
+        Ok(detected) => Ok((detected, Some(report))),
+        Err(e) => Err(DetectionFailure::Inconsistent {
+            field: e.field,
+            expected: e.expected,
+            report,
+        }),
+    }
+}
+
+/// Decode an image for detection, with the header-first checks of uploads (format,
+/// `expected` size, pixel budget, complete file). Errors read as "expected …".
+pub fn decode_gray(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+    max_pixels: u64,
+) -> Result<Gray, String> {
+    let (_, img) =
+        imageio::decode(bytes, expected, max_pixels).map_err(|e| format!("expected {e}"))?;
+    Ok(Gray::from_dynamic(&img))
+}
+
+/// What one image gave: tag corners (motion method) or feature-line points (vanishing).
+#[derive(Clone)]
+enum Found {
+    Points(Vec<ObservationSpec>),
+    Lines(Vec<LineSpec>),
+}
+
+/// What one image gave: its report line and its detections.
+type SlotOutcome = (ImageReport, Found);
+
+fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) -> SlotOutcome {
+    let mut report = ImageReport {
+        field: slot.field.clone(),
+        camera: slot.camera.clone(),
+        frame: slot.frame,
+        path: slot.path.clone(),
+        tags: 0,
+        points: 0,
+        tags_from_layout: 0,
+        rejected: vec![],
+        error: None,
+        unreadable: false,
+    };
+    let camera = session
+        .camera_index(&slot.camera)
+        .map(|i| &session.cameras[i].camera);
+    let bytes = match source.read(slot) {
+        Ok(b) => b,
+        Err(e) => {
+            report.error = Some(e);
+            report.unreadable = true;
+            let none = if session.manifest.method == Method::Vanishing {
+                Found::Lines(vec![])
+            } else {
+                Found::Points(vec![])
+            };
+            return (report, none);
+        }
+    };
+    if session.manifest.method == Method::Vanishing {
+        let outcome = Ok(bytes).and_then(|bytes: Vec<u8>| {
+            let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
+            line_slot(session, slot, &gray)
+        });
+        return match outcome {
+            Ok((lines, targets)) => {
+                report.tags = targets;
+                report.points = lines.iter().map(|l| l.points.len()).sum();
+                (report, Found::Lines(lines))
+            }
+            Err(e) => {
+                report.error = Some(e);
+                (report, Found::Lines(vec![]))
+            }
+        };
+    }
+    let outcome = Ok(bytes).and_then(|bytes: Vec<u8>| {
+        let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;
+        detect_tags(
+            &gray,
+            &session.manifest.targets,
+            camera,
+            &DetectOptions::default(),
+        )
+    });
+    match outcome {
+        Ok(d) => {
+            report.tags = d.tags.len();
+            report.tags_from_layout = d.tags.iter().filter(|t| t.source == "layout").count();
+            report.points = d.points.len();
+            report.rejected = d.rejected.iter().map(|r| r.reason.clone()).collect();
+            let obs = d
+                .points
+                .into_iter()
+                .map(|p| ObservationSpec {
+                    point: p.point,
+                    u: p.u,
+                    v: p.v,
+                })
+                .collect();
+            (report, Found::Points(obs))
+        }
+        Err(e) => {
+            report.error = Some(e);
+            (report, Found::Points(vec![]))
+        }
+    }
+}
+
+/// Size of a detected L in the image (its corners' spread), to prefer the nearest.
+fn spread(d: &LineTargetDetection) -> f64 {
+    let c = &d.corners;
+    (c[0][0] - c[3][0]).hypot(c[0][1] - c[3][1])
+}
+
+fn line_specs(d: &LineTargetDetection, target: &str) -> Vec<LineSpec> {
+    d.lines
+        .iter()
+        .map(|l| LineSpec {
+            target: target.to_string(),
+            line: l.line as u8,
+            points: l.points.clone(),
+        })
+        .collect()
+}
+
+/// Line targets in a rig image (the one `frames[0].line_targets` names; the largest L
+/// if several show) or in a ring image (its two targets, named left to right).
+fn line_slot(
+    session: &Session,
+    slot: &ImageSlot,
+    gray: &Gray,
+) -> Result<(Vec<LineSpec>, usize), String> {
+    let v = session
+        .vanishing
+        .as_ref()
+        .ok_or("a vanishing session (internal: no vanishing input)")?;
+    let frame = session.manifest.frames.first();
+    match slot.frame_pos {
+        Some(_) => {
+            let camera = session
+                .camera_index(&slot.camera)
+                .map(|i| &session.cameras[i].camera)
+                .ok_or("a rig camera")?;
+            let target = frame
+                .and_then(|f| f.line_targets.get(&slot.camera))
+                .ok_or_else(|| {
+                    format!(
+                        "expected frames[0].line_targets.{} to name the line target this camera sees",
+                        slot.camera
+                    )
+                })?;
+            let mut found = detect_line_targets(gray, Lens(Some(camera)));
+            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
+            let n = found.len();
+            let d = found
+                .first()
+                .ok_or("expected a line target (a dark L on a light ground), found none")?;
+            Ok((line_specs(d, target), n))
+        }
+        None => {
+            let r = session
+                .manifest
+                .ring
+                .iter()
+                .find(|r| r.index == slot.frame)
+                .ok_or("a ring view")?;
+            let mut found = detect_line_targets(gray, Lens(Some(&v.auxiliary.camera)));
+            if found.len() < 2 {
+                return Err(format!(
+                    "expected the two line targets {} and {} in view, found {}",
+                    r.targets[0],
+                    r.targets[1],
+                    found.len()
+                ));
+            }
+            let n = found.len();
+            // The two largest, then left to right (the order ring[].targets names them).
+            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
+            found.truncate(2);
+            found.sort_by(|a, b| {
+                let cx = |d: &LineTargetDetection| d.corners.iter().map(|c| c[0]).sum::<f64>();
+                cx(a).total_cmp(&cx(b))
+            });
+            let mut lines = line_specs(&found[0], &r.targets[0]);
+            lines.extend(line_specs(&found[1], &r.targets[1]));
+            Ok((lines, n))
+        }
+    }
+}

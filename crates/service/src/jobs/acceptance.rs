@@ -1,0 +1,149 @@
+//! Pass/fail of a finished job against its tenant's acceptance thresholds — the mark the
+//! dashboard shows beside every job. Computed when read, not when the job ends, so a
+//! tenant that tightens its thresholds sees old jobs judged by the new ones.
+
+use super::queue::JobRow;
+use crate::store::Tenant;
+use rigcal_core::result::ResultDocument;
+use serde::Serialize;
+
+/// What the jobs table keeps of a result document to judge it without reading it.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct ResultSummary {
+    pub residual_rms_px: Option<f64>,
+    /// Largest 1-σ over every camera's observable translation components (m).
+    pub worst_sigma_translation_m: Option<f64>,
+    /// Largest 1-σ over every camera's observable rotation components (deg).
+    pub worst_sigma_rotation_deg: Option<f64>,
+}
+
+impl ResultSummary {
+    pub fn of(doc: &ResultDocument) -> Self {
+        let worst = |f: &dyn Fn(&rigcal_core::result::Extrinsic) -> [Option<f64>; 3]| {
+            doc.extrinsics
+                .iter()
+                .flat_map(|e| f(e).into_iter().flatten())
+                .fold(None, |m: Option<f64>, s| Some(m.map_or(s, |m| m.max(s))))
+        };
+        ResultSummary {
+            residual_rms_px: doc.residuals.as_ref().map(|r| r.all.rms),
+            worst_sigma_translation_m: worst(&|e| e.sigma_translation_m),
+            worst_sigma_rotation_deg: worst(&|e| e.sigma_rotation_deg),
+        }
+    }
+}
+
+/// The verdict: `pass` is `None` while the job has not ended.
+#[derive(Clone, Debug, Serialize, PartialEq)]
+pub struct Acceptance {
+    pub pass: Option<bool>,
+    /// Why it failed, one sentence per broken threshold (empty when it passed).
+    pub reasons: Vec<String>,
+}
+
+pub fn judge(job: &JobRow, tenant: &Tenant) -> Acceptance {
+    if !job.is_terminal() {
+        return Acceptance {
+            pass: None,
+            reasons: vec![],
+        };
+    }
+    let mut reasons = Vec::new();
+    if job.status != "succeeded" {
+        reasons.push(format!("the job ended {}", job.status));
+    }
+    let mut check = |name: &str, value: Option<f64>, max: f64, unit: &str| match value {
+        Some(v) if v <= max => {}
+        Some(v) => reasons.push(format!("{name} {v:.4} {unit} exceeds {max} {unit}")),
+        None if job.status == "succeeded" => reasons.push(format!("no {name} was computed")),
+        None => {}
+    };
+    check("residual RMS", job.residual_rms_px, tenant.max_rms_px, "px");
+    check(
+        "translation 1-σ",
+        job.worst_sigma_translation_m,
+        tenant.max_sigma_translation_m,
+        "m",
+    );
+    check(
+        "rotation 1-σ",
+        job.worst_sigma_rotation_deg,
+        tenant.max_sigma_rotation_deg,
+        "deg",
+    );
+    Acceptance {
+        pass: Some(reasons.is_empty()),
+        reasons,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn job(status: &str, rms: Option<f64>, st: Option<f64>, sr: Option<f64>) -> JobRow {
+        JobRow {
+            id: "j".into(),
+            tenant_id: "t".into(),
+            session_id: "s".into(),
+            vehicle_id: None,
+            method: "motion".into(),
+            options: "{}".into(),
+            status: status.into(),
+            stage: None,
+            progress: 1.0,
+            attempts: 1,
+            max_attempts: 3,
+            error: None,
+            lease_owner: None,
+            residual_rms_px: rms,
+            worst_sigma_translation_m: st,
+            worst_sigma_rotation_deg: sr,
+            created_at: 0,
+            started_at: Some(0),
+            finished_at: Some(1),
+        }
+    }
+
+    fn tenant() -> Tenant {
+        Tenant {
+            id: "t".into(),
+            name: "t".into(),
+            max_rms_px: 1.0,
+            max_sigma_translation_m: 0.005,
+            max_sigma_rotation_deg: 0.1,
+        }
+    }
+
+    #[test]
+    fn within_every_threshold_passes() {
+        let a = judge(
+            &job("succeeded", Some(0.4), Some(0.001), Some(0.02)),
+            &tenant(),
+        );
+        assert_eq!(a.pass, Some(true));
+        assert!(a.reasons.is_empty());
+    }
+
+    #[test]
+    fn each_broken_threshold_is_named() {
+        let a = judge(
+            &job("succeeded", Some(1.5), Some(0.01), Some(0.02)),
+            &tenant(),
+        );
+        assert_eq!(a.pass, Some(false));
+        assert_eq!(a.reasons.len(), 2, "{:?}", a.reasons);
+        assert!(a.reasons[0].contains("residual RMS"));
+        assert!(a.reasons[1].contains("translation"));
+    }
+
+    #[test]
+    fn unfinished_has_no_verdict_and_degraded_fails() {
+        let mut j = job("running", None, None, None);
+        j.finished_at = None;
+        assert_eq!(judge(&j, &tenant()).pass, None);
+        let a = judge(&job("degraded", Some(0.3), Some(0.001), None), &tenant());
+        assert_eq!(a.pass, Some(false));
+        assert_eq!(a.reasons, vec!["the job ended degraded".to_string()]);
+    }
+}

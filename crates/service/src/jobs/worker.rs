@@ -1,0 +1,367 @@
+//! The worker pool: each worker claims a job, runs the pipeline on a blocking thread
+//! (so the API keeps answering), reports stages as job events, renews its lease, and
+//! honours cancellation between stages.
+//!
+//! Failure policy: the engine's verdict (including `failed` with reasons) is a result,
+//! stored once, never retried. A session that no longer parses is bad input: failed once.
+//! Everything else (database or blob I/O, a panic in the engine) is treated as transient
+//! and retried with exponential backoff up to the job's attempt limit.
+
+use super::queue::{JobRow, Queue};
+use super::JobOptions;
+use crate::store::blob::BlobStore;
+use crate::store::Store;
+use crate::telemetry::Metrics;
+use rigcal_core::session::parse_session;
+use rigcal_core::session::ImageSlot;
+use rigcal_core::verdict::ReasonCode;
+use rigcal_engine::pipeline::{run, Cancelled, ImageSource, Progress};
+use serde_json::json;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+use tokio::sync::mpsc;
+
+#[derive(Clone, Debug)]
+pub struct WorkerConfig {
+    pub workers: usize,
+    pub lease: Duration,
+    /// How often an idle worker looks for work.
+    pub poll: Duration,
+    /// First retry delay; doubled per attempt.
+    pub backoff: Duration,
+    /// Largest image decoded at detection: the same budget the upload was checked
+    /// against (`--max-image-pixels`), so an image the API accepted is never skipped.
+    pub max_image_pixels: u64,
+}
+
+impl Default for WorkerConfig {
+    fn default() -> Self {
+        Self {
+            workers: 1,
+            lease: Duration::from_secs(30),
+            poll: Duration::from_millis(200),
+            backoff: Duration::from_secs(2),
+            max_image_pixels: rigcal_engine::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
+        }
+    }
+}
+
+/// Start `cfg.workers` workers on the current runtime. They run until the process ends.
+pub fn spawn(store: Store, metrics: Arc<Metrics>, cfg: WorkerConfig) {
+    // The host only labels the worker in the queue's lease records (`claimed_by`); a
+    // machine without HOSTNAME is labelled "local" rather than refused.
+    let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
+    for i in 0..cfg.workers {
+        let name = format!(
+            "{host}/{}/{i}/{}",
+            std::process::id(),
+            uuid::Uuid::new_v4().simple()
+        );
+        let (store, metrics, cfg) = (store.clone(), metrics.clone(), cfg.clone());
+        tokio::spawn(async move { worker_loop(name, store, metrics, cfg).await });
+    }
+}
+
+async fn worker_loop(name: String, store: Store, metrics: Arc<Metrics>, cfg: WorkerConfig) {
+    let queue = Queue::new(store.pool.clone());
+    let lease_ms = cfg.lease.as_millis() as i64;
+    loop {
+        match queue.claim(&name, lease_ms).await {
+            Ok(Some(job)) => {
+                tracing::info!(job = %job.id, attempt = job.attempts, worker = %name, "claimed");
+                run_job(&name, &store, &queue, &metrics, &cfg, job).await;
+            }
+            Ok(None) => tokio::time::sleep(cfg.poll).await,
+            Err(e) => {
+                tracing::warn!(worker = %name, "claim failed: {e}");
+                tokio::time::sleep(cfg.poll * 5).await;
+            }
+        }
+    }
+}
+
+/// Sends stage changes to the async side and reads the cancel flag.
+struct ChannelProgress {
+    tx: mpsc::UnboundedSender<(String, f64)>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Progress for ChannelProgress {
+    fn stage(&self, stage: &str, fraction: f64) -> bool {
+        let _ = self.tx.send((stage.to_string(), fraction));
+        !self.stop.load(Ordering::SeqCst)
+    }
+}
+
+fn problem(code: &str, detail: impl Into<String>, field: Option<&str>) -> serde_json::Value {
+    json!({"code": code, "detail": detail.into(), "field": field})
+}
+
+async fn run_job(
+    name: &str,
+    store: &Store,
+    queue: &Queue,
+    metrics: &Metrics,
+    cfg: &WorkerConfig,
+    job: JobRow,
+) {
+    let backoff = cfg.backoff.as_millis() as i64;
+    if job.attempts > job.max_attempts {
+        let p = problem(
+            "attempts_exhausted",
+            format!(
+                "the job was claimed {} times without finishing (workers lost mid-job)",
+                job.attempts - 1
+            ),
+            None,
+        );
+        let _ = queue.fail(&job.id, name, &p, false, backoff).await;
+        metrics.job_finished("failed");
+        return;
+    }
+    let session = match store.session_by_id(&job.session_id).await {
+        Ok(Some(s)) => s,
+        Ok(None) => {
+            let p = problem(
+                "session_missing",
+                "the job's session no longer exists",
+                Some("session_id"),
+            );
+            let _ = queue.fail(&job.id, name, &p, false, backoff).await;
+            return;
+        }
+        Err(e) => {
+            let p = problem("storage_error", e.to_string(), None);
+            let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+            return;
+        }
+    };
+    // The manifest and the options were validated when they were stored; if they no
+    // longer parse, the store or this build disagrees with the API that accepted them,
+    // which is ours to fix, not the client's.
+    let parsed = parse_session(session.manifest.as_bytes()).map_err(|e| {
+        format!(
+            "the stored session no longer validates ({}: {})",
+            e.field, e.expected
+        )
+    });
+    let opts = serde_json::from_str::<JobOptions>(&job.options)
+        .map_err(|e| e.to_string())
+        .and_then(|o| {
+            o.calib()
+                .map_err(|e| format!("{}: {}", e.field, e.expected))
+        })
+        .map_err(|e| format!("the stored job options no longer validate ({e})"));
+    let (parsed, opts) = match (parsed, opts) {
+        (Ok(p), Ok(o)) => (p, o),
+        (Err(why), _) | (_, Err(why)) => {
+            let p = problem("internal_error", why, None);
+            let _ = queue.fail(&job.id, name, &p, false, backoff).await;
+            metrics.job_finished("failed");
+            return;
+        }
+    };
+
+    let images = match store.images(&job.session_id).await {
+        Ok(rows) => BlobSource {
+            blobs: store.blobs.clone(),
+            max_pixels: cfg.max_image_pixels,
+            by_slot: rows
+                .into_iter()
+                .map(|r| ((r.camera, r.frame), r.sha256))
+                .collect(),
+        },
+        Err(e) => {
+            let p = problem("storage_error", e.to_string(), None);
+            let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+            return;
+        }
+    };
+    let stop = Arc::new(AtomicBool::new(false));
+    let lost = Arc::new(AtomicBool::new(false));
+    let (tx, mut rx) = mpsc::unbounded_channel::<(String, f64)>();
+    let progress = ChannelProgress {
+        tx,
+        stop: stop.clone(),
+    };
+    let solve = tokio::task::spawn_blocking(move || {
+        std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            run(&parsed, &images, &opts, &progress)
+        }))
+    });
+    tokio::pin!(solve);
+    // The heartbeat renews the lease and reads the cancel flag; twice a second at most
+    // so a cancel is seen before the next stage boundary, at the cost of one UPDATE.
+    let mut beat = tokio::time::interval((cfg.lease / 3).min(Duration::from_millis(500)));
+    beat.tick().await;
+    let mut current: Option<(String, Instant)> = None;
+    let lease_ms = cfg.lease.as_millis() as i64;
+    let record = |stage: String, fraction: f64, current: &mut Option<(String, Instant)>| {
+        if let Some((s, t)) = current.take() {
+            metrics.stage(&s, t.elapsed().as_secs_f64());
+        }
+        *current = Some((stage.clone(), Instant::now()));
+        let (queue, id, stop, lost) = (queue.clone(), job.id.clone(), stop.clone(), lost.clone());
+        async move {
+            match queue.progress(&id, name, &stage, fraction).await {
+                Ok(Some(cancel)) => {
+                    if cancel {
+                        stop.store(true, Ordering::SeqCst)
+                    }
+                }
+                Ok(None) => {
+                    lost.store(true, Ordering::SeqCst);
+                    stop.store(true, Ordering::SeqCst);
+                }
+                Err(e) => tracing::warn!(job = %id, "progress update failed: {e}"),
+            }
+        }
+    };
+    let outcome = loop {
+        tokio::select! {
+            // Stage reports first: a fast solve must not finish the job before the
+            // stages it went through are recorded.
+            biased;
+            Some((stage, fraction)) = rx.recv() => record(stage, fraction, &mut current).await,
+            r = &mut solve => break r,
+            _ = beat.tick() => {
+                match queue.heartbeat(&job.id, name, lease_ms).await {
+                    Ok(Some(cancel)) => if cancel { stop.store(true, Ordering::SeqCst) },
+                    Ok(None) => { lost.store(true, Ordering::SeqCst); stop.store(true, Ordering::SeqCst); }
+                    Err(e) => tracing::warn!(job = %job.id, "heartbeat failed: {e}"),
+                }
+            }
+        }
+    };
+    // Stages reported between the last poll and the end of the solve.
+    while let Ok((stage, fraction)) = rx.try_recv() {
+        record(stage, fraction, &mut current).await;
+    }
+    if let Some((s, t)) = current.take() {
+        metrics.stage(&s, t.elapsed().as_secs_f64());
+    }
+    if lost.load(Ordering::SeqCst) {
+        tracing::warn!(job = %job.id, "lease lost; another worker owns the job now");
+        return;
+    }
+    match outcome {
+        // The session's images could not be read (storage): not a verdict on the capture,
+        // and perhaps transient, so retried with backoff like other storage failures.
+        Ok(Ok(Ok(doc))) if doc.reasons.iter().any(|r| r.is(ReasonCode::InputMissing)) => {
+            let message = doc
+                .reasons
+                .iter()
+                .find(|r| r.is(ReasonCode::InputMissing))
+                .map(|r| r.message.clone())
+                .unwrap_or_default();
+            tracing::warn!(job = %job.id, "{message}");
+            let p = problem("input_missing", message, None);
+            if let Ok(s) = queue.fail(&job.id, name, &p, true, backoff).await {
+                if s == "failed" {
+                    metrics.job_finished("failed");
+                }
+            }
+        }
+        Ok(Ok(Ok(doc))) => {
+            let status = doc.status.as_str();
+            let text = match serde_json::to_string(&doc) {
+                Ok(t) => t,
+                Err(e) => {
+                    let p = problem("internal_error", e.to_string(), None);
+                    let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+                    return;
+                }
+            };
+            let summary = super::acceptance::ResultSummary::of(&doc);
+            let error = (doc.status == rigcal_core::result::Status::Failed).then(|| {
+                let first = doc.reasons.first();
+                problem(
+                    first.map_or("failed", |r| r.code.as_str()),
+                    first.map_or(String::new(), |r| r.message.clone()),
+                    None,
+                )
+                .to_string()
+            });
+            match queue
+                .complete(&job.id, name, status, &text, &summary, error.as_deref())
+                .await
+            {
+                Ok(true) => {
+                    metrics.job_finished(status);
+                    tracing::info!(job = %job.id, status, "finished");
+                }
+                Ok(false) => tracing::warn!(job = %job.id, "lease lost before completion"),
+                Err(e) => {
+                    tracing::warn!(job = %job.id, "storing the result failed: {e}");
+                    let p = problem("storage_error", e.to_string(), None);
+                    let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+                }
+            }
+        }
+        Ok(Ok(Err(Cancelled(stage)))) => {
+            if let Ok(true) = queue.mark_cancelled(&job.id, name, &stage).await {
+                metrics.job_finished("cancelled");
+            }
+        }
+        Ok(Err(panic)) => {
+            let what = panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "panic".into());
+            tracing::error!(job = %job.id, "engine panicked: {what}");
+            let p = problem(
+                "internal_error",
+                format!("the engine failed unexpectedly: {what}"),
+                None,
+            );
+            if let Ok(s) = queue.fail(&job.id, name, &p, true, backoff).await {
+                if s == "failed" {
+                    metrics.job_finished("failed");
+                }
+            }
+        }
+        Err(e) => {
+            let p = problem("internal_error", format!("worker task failed: {e}"), None);
+            let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+        }
+    }
+}
+
+/// `rigcal worker`: workers only, against the database in `data_dir`, until a signal.
+pub async fn run_standalone(data_dir: &std::path::Path, cfg: WorkerConfig) -> anyhow::Result<()> {
+    let store = Store::open(data_dir).await?;
+    let metrics = Arc::new(Metrics::default());
+    eprintln!(
+        "rigcal worker: {} worker(s) on {}",
+        cfg.workers,
+        data_dir.display()
+    );
+    spawn(store, metrics, cfg);
+    crate::signals::shutdown_signal().await;
+    Ok(())
+}
+
+/// A session's uploaded images, read from the blob store by (camera, frame).
+struct BlobSource {
+    blobs: BlobStore,
+    max_pixels: u64,
+    by_slot: std::collections::HashMap<(String, i64), String>,
+}
+
+impl ImageSource for BlobSource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        let sha = self
+            .by_slot
+            .get(&(slot.camera.clone(), slot.frame))
+            .ok_or_else(|| format!("{} was never uploaded", slot.field))?;
+        self.blobs
+            .get(sha)
+            .map_err(|e| format!("stored image {sha} unreadable: {e}"))
+    }
+
+    fn max_pixels(&self) -> u64 {
+        self.max_pixels
+    }
+}

@@ -1,0 +1,1183 @@
+//! A bundle problem over rigs: `cam_from_world = (world_from_rig · rig_from_cam)⁻¹`.
+//!
+//! The same structure serves two stages: the per-scene bundle adjustment of the
+//! trajectories (each image its own "rig pose", one identity extrinsic) and the rig
+//! bundle adjustment of Lébraly §4 (one rig pose per frame, one extrinsic per camera).
+//! Points are free 3-vectors or corners of rigid bodies (6-DOF `world_from_body`).
+//!
+//! Every 6-DOF block is perturbed in the decoupled form of [`Pose::perturbed`]:
+//! `[dt (3, metres, outer frame), dφ (3, radians, outer frame)]`.
+//!
+//! The linear system of each LM step is reduced by a Schur complement on the points and
+//! bodies (their blocks of the normal matrix are block-diagonal), leaving a dense system
+//! over rig poses and extrinsics, solved by Cholesky.
+
+use super::loss::Loss;
+use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix6, SMatrix, Vector6};
+use rigcal_core::geometry::so3::skew;
+use rigcal_core::geometry::{Camera, Mat3, Pose, Vec2, Vec3};
+use rigcal_core::linalg::symmetric_pseudo_inverse;
+use std::time::Instant;
+
+type J26 = SMatrix<f64, 2, 6>;
+
+/// Where an observed point lives.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum PointRef {
+    Free(usize),
+    Body { body: usize, local: Vec3 },
+}
+
+/// One 2D observation: camera `cam` of rig pose `rig` saw `point` at pixel `uv`.
+#[derive(Clone, Copy, Debug)]
+pub struct Obs {
+    pub rig: usize,
+    pub cam: usize,
+    pub point: PointRef,
+    pub uv: Vec2,
+}
+
+/// A measured distance between two points; weighted `pixel_sigma / sigma` in the cost.
+#[derive(Clone, Copy, Debug)]
+pub struct DistanceConstraint {
+    pub a: PointRef,
+    pub b: PointRef,
+    pub distance: f64,
+    pub sigma: f64,
+}
+
+/// A Gaussian prior on one direction of the extrinsics' tangent space at `origin`:
+/// `Σ_c v_c · [t_c − t0_c ; log(R_c R0_cᵀ)] ≈ 0 ± sigma`. It holds directions the data
+/// cannot determine (the height under planar motion) at their initial value, so that
+/// LM does not fit noise by wandering along them.
+#[derive(Clone, Debug)]
+pub struct DirectionPrior {
+    pub terms: Vec<(usize, Vector6<f64>)>,
+    pub origin: Vec<Pose>,
+    pub sigma: f64,
+}
+
+#[derive(Clone, Debug)]
+pub struct BundleProblem {
+    pub cameras: Vec<Camera>,
+    pub rig_from_cam: Vec<Pose>,
+    pub cam_fixed: Vec<bool>,
+    pub world_from_rig: Vec<Pose>,
+    pub rig_fixed: Vec<bool>,
+    pub points: Vec<Vec3>,
+    pub world_from_body: Vec<Pose>,
+    pub body_fixed: Vec<bool>,
+    pub observations: Vec<Obs>,
+    pub distances: Vec<DistanceConstraint>,
+    pub priors: Vec<DirectionPrior>,
+    /// The pixel noise the distance residuals are scaled to (see [`DistanceConstraint`]).
+    pub pixel_sigma: f64,
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct LmOptions {
+    pub max_iterations: usize,
+    pub loss: Loss,
+    /// Stop when the relative cost decrease of an accepted step is below this.
+    pub function_tolerance: f64,
+    /// Stop when the step is this small relative to the parameters.
+    pub parameter_tolerance: f64,
+    pub gradient_tolerance: f64,
+}
+
+impl Default for LmOptions {
+    fn default() -> Self {
+        Self {
+            max_iterations: 100,
+            loss: Loss::Squared,
+            // Ceres stops at a relative decrease of 1e-6; 1e-9 keeps noise-free problems
+            // exact (their cost falls to ~0 first) without crawling on flat directions.
+            function_tolerance: 1e-9,
+            parameter_tolerance: 1e-12,
+            gradient_tolerance: 1e-12,
+        }
+    }
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct BundleSummary {
+    pub iterations: usize,
+    pub initial_cost: f64,
+    pub final_cost: f64,
+    pub converged: bool,
+    pub termination: String,
+    pub seconds: f64,
+    pub reduced_dimension: usize,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Slot {
+    Fixed,
+    Reduced(usize),
+    Elim(usize),
+}
+
+/// Which parameter blocks are solved where; built once per solve.
+struct Layout {
+    rig: Vec<Slot>,
+    cam: Vec<Slot>,
+    point: Vec<Slot>,
+    body: Vec<Slot>,
+    n_reduced: usize,
+    /// Size (3 or 6) of each eliminated block.
+    elim_size: Vec<usize>,
+    /// For each eliminated block: the reduced blocks `(offset, size)` it couples with.
+    couplings: Vec<Vec<(usize, usize)>>,
+    /// Per observation: index of its rig and camera blocks in the coupling list of its
+    /// eliminated block (if the point is eliminated and those blocks are reduced).
+    obs_coupling: Vec<[Option<usize>; 3]>,
+}
+
+/// One residual's Jacobian blocks: slot, size, and the 2×6 (zero-padded) matrix.
+type Blocks = [(Slot, usize, J26); 4];
+
+/// Normal equations `H δ = −g`, split into reduced and eliminated parts.
+struct Normal {
+    hrr: DMatrix<f64>,
+    gr: DVector<f64>,
+    hee: Vec<Matrix6<f64>>,
+    ge: Vec<Vector6<f64>>,
+    /// Per eliminated block, per coupling: H_{E,R} (rows: E, cols: R), zero-padded.
+    her: Vec<Vec<Matrix6<f64>>>,
+    cost: f64,
+}
+
+impl BundleProblem {
+    fn point_world(&self, p: &PointRef) -> Vec3 {
+        match *p {
+            PointRef::Free(i) => self.points[i],
+            PointRef::Body { body, local } => self.world_from_body[body].apply(&local),
+        }
+    }
+
+    /// Reprojection residual (projected − observed, pixels) of one observation.
+    pub fn residual(&self, o: &Obs) -> Option<Vec2> {
+        let x = self.point_world(&o.point);
+        let cam_from_world = (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam]).inverse();
+        self.cameras[o.cam]
+            .project(&cam_from_world.apply(&x))
+            .map(|uv| uv - o.uv)
+    }
+
+    /// Drop the observations whose point is not in front of its camera (they cannot be
+    /// linearised); returns which observations were kept, in their original order.
+    pub fn drop_unprojectable(&mut self) -> Vec<bool> {
+        let keep: Vec<bool> = self
+            .observations
+            .iter()
+            .map(|o| self.point_in_camera(o).z > 0.0)
+            .collect();
+        let mut it = keep.iter();
+        self.observations.retain(|_| *it.next().unwrap_or(&false));
+        keep
+    }
+
+    /// Point in camera coordinates; positive depth means in front.
+    pub fn point_in_camera(&self, o: &Obs) -> Vec3 {
+        let x = self.point_world(&o.point);
+        (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam])
+            .inverse()
+            .apply(&x)
+    }
+
+    /// Residual and the Jacobians w.r.t. rig pose, extrinsic and world point.
+    fn linearize_obs(&self, o: &Obs) -> Option<(Vec2, J26, J26, Matrix2x3<f64>)> {
+        let x = self.point_world(&o.point);
+        let rig = &self.world_from_rig[o.rig];
+        let ext = &self.rig_from_cam[o.cam];
+        let rkt = rig.rot.transpose();
+        let q = rkt * (x - rig.trans);
+        let rxt = ext.rot.transpose();
+        let p = rxt * (q - ext.trans);
+        let (uv, jp) = self.cameras[o.cam].project_with_jacobian(&p)?;
+        let jq = jp * rxt;
+        let mut j_rig = J26::zeros();
+        j_rig.fixed_view_mut::<2, 3>(0, 0).copy_from(&(-jq * rkt));
+        j_rig
+            .fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(jq * rkt * skew(&(x - rig.trans))));
+        let mut j_cam = J26::zeros();
+        j_cam.fixed_view_mut::<2, 3>(0, 0).copy_from(&(-jq));
+        j_cam
+            .fixed_view_mut::<2, 3>(0, 3)
+            .copy_from(&(jp * rxt * skew(&(q - ext.trans))));
+        Some((uv - o.uv, j_rig, j_cam, jq * rkt))
+    }
+
+    /// d(world point)/d(block) for the block the point belongs to, as a 3×6 (padded).
+    fn point_block(&self, p: &PointRef, layout: &Layout) -> (Slot, usize, SMatrix<f64, 3, 6>) {
+        match *p {
+            PointRef::Free(i) => {
+                let mut j = SMatrix::<f64, 3, 6>::zeros();
+                j.fixed_view_mut::<3, 3>(0, 0).copy_from(&Mat3::identity());
+                (layout.point[i], 3, j)
+            }
+            PointRef::Body { body, local } => {
+                let mut j = SMatrix::<f64, 3, 6>::zeros();
+                j.fixed_view_mut::<3, 3>(0, 0).copy_from(&Mat3::identity());
+                let rl = self.world_from_body[body].rot * local;
+                j.fixed_view_mut::<3, 3>(0, 3).copy_from(&(-skew(&rl)));
+                (layout.body[body], 6, j)
+            }
+        }
+    }
+
+    fn distance_residual(&self, d: &DistanceConstraint) -> f64 {
+        ((self.point_world(&d.a) - self.point_world(&d.b)).norm() - d.distance)
+            * (self.pixel_sigma / d.sigma)
+    }
+
+    fn prior_residual(&self, p: &DirectionPrior) -> f64 {
+        let mut r = 0.0;
+        for (i, (c, v)) in p.terms.iter().enumerate() {
+            let cur = &self.rig_from_cam[*c];
+            let o = &p.origin[i];
+            let dt = cur.trans - o.trans;
+            let dr = rigcal_core::geometry::so3::log(&(cur.rot * o.rot.transpose()));
+            r += v.fixed_rows::<3>(0).dot(&dt) + v.fixed_rows::<3>(3).dot(&dr);
+        }
+        r * (self.pixel_sigma / p.sigma)
+    }
+
+    /// Choose what to eliminate. Residuals never couple two rig poses, nor two points
+    /// (bar the few in distance constraints), so either set is block-diagonal and can be
+    /// Schur-eliminated. Eliminating points leaves rig poses + extrinsics (the paper's
+    /// choice, small when frames are few); with many frames it is far cheaper to
+    /// eliminate the rig poses and keep points + extrinsics. The smaller system wins.
+    fn layout(&self) -> Layout {
+        let mut in_distance_pt = vec![false; self.points.len()];
+        let mut in_distance_body = vec![false; self.world_from_body.len()];
+        for d in &self.distances {
+            for p in [d.a, d.b] {
+                match p {
+                    PointRef::Free(i) => in_distance_pt[i] = true,
+                    PointRef::Body { body, .. } => in_distance_body[body] = true,
+                }
+            }
+        }
+        let free_rigs = self.rig_fixed.iter().filter(|f| !**f).count();
+        let free_bodies = self.body_fixed.iter().filter(|f| !**f).count();
+        let dist_dims = 3 * in_distance_pt.iter().filter(|d| **d).count()
+            + 6 * in_distance_body.iter().filter(|d| **d).count();
+        let dim_keep_rigs = 6 * free_rigs + dist_dims;
+        let dim_keep_points = 3 * self.points.len() + 6 * free_bodies;
+        let eliminate_rigs = dim_keep_points < dim_keep_rigs;
+
+        let mut n = 0;
+        let mut elim_size = Vec::new();
+        let mut slot = |fixed: bool, eliminate: bool, size: usize| {
+            if fixed {
+                Slot::Fixed
+            } else if eliminate {
+                elim_size.push(size);
+                Slot::Elim(elim_size.len() - 1)
+            } else {
+                n += size;
+                Slot::Reduced(n - size)
+            }
+        };
+        let rig: Vec<Slot> = self
+            .rig_fixed
+            .iter()
+            .map(|&f| slot(f, eliminate_rigs, 6))
+            .collect();
+        let cam: Vec<Slot> = self.cam_fixed.iter().map(|&f| slot(f, false, 6)).collect();
+        let point: Vec<Slot> = in_distance_pt
+            .iter()
+            .map(|&d| slot(false, !eliminate_rigs && !d, 3))
+            .collect();
+        let body: Vec<Slot> = (0..self.world_from_body.len())
+            .map(|b| {
+                slot(
+                    self.body_fixed[b],
+                    !eliminate_rigs && !in_distance_body[b],
+                    6,
+                )
+            })
+            .collect();
+        let mut layout = Layout {
+            rig,
+            cam,
+            point,
+            body,
+            n_reduced: n,
+            couplings: vec![Vec::new(); elim_size.len()],
+            elim_size,
+            obs_coupling: Vec::new(),
+        };
+        // Coupling structure: for each observation's eliminated block, the index in its
+        // coupling list of each of the observation's reduced blocks (rig, camera, point).
+        let mut index: Vec<std::collections::HashMap<usize, usize>> =
+            vec![Default::default(); layout.elim_size.len()];
+        for o in &self.observations {
+            let (pslot, psize) = match o.point {
+                PointRef::Free(i) => (layout.point[i], 3),
+                PointRef::Body { body, .. } => (layout.body[body], 6),
+            };
+            let blocks = [
+                (layout.rig[o.rig], 6),
+                (layout.cam[o.cam], 6),
+                (pslot, psize),
+            ];
+            let mut entry = [None, None, None];
+            if let Some(e) = blocks.iter().find_map(|(s, _)| {
+                if let Slot::Elim(e) = s {
+                    Some(*e)
+                } else {
+                    None
+                }
+            }) {
+                for (k, (s, size)) in blocks.iter().enumerate() {
+                    if let Slot::Reduced(off) = s {
+                        let list = &mut layout.couplings[e];
+                        let idx = *index[e].entry(*off).or_insert_with(|| {
+                            list.push((*off, *size));
+                            list.len() - 1
+                        });
+                        entry[k] = Some(idx);
+                    }
+                }
+            }
+            layout.obs_coupling.push(entry);
+        }
+        layout
+    }
+
+    /// Robust cost `½ Σ ρ(|r|²) + ½ Σ r_d²`; infinite if any point falls behind its camera.
+    pub fn cost(&self, loss: &Loss) -> f64 {
+        let mut c = 0.0;
+        for o in &self.observations {
+            match self.residual(o) {
+                Some(r) => c += loss.rho(r.norm_squared()),
+                None => return f64::INFINITY,
+            }
+        }
+        for d in &self.distances {
+            c += self.distance_residual(d).powi(2);
+        }
+        for p in &self.priors {
+            c += self.prior_residual(p).powi(2);
+        }
+        0.5 * c
+    }
+
+    fn normal_equations(&self, layout: &Layout, loss: &Loss) -> Option<Normal> {
+        let nr = layout.n_reduced;
+        let ne = layout.elim_size.len();
+        let mut n = Normal {
+            hrr: DMatrix::zeros(nr, nr),
+            gr: DVector::zeros(nr),
+            hee: vec![Matrix6::zeros(); ne],
+            ge: vec![Vector6::zeros(); ne],
+            her: layout
+                .couplings
+                .iter()
+                .map(|c| vec![Matrix6::zeros(); c.len()])
+                .collect(),
+            cost: 0.0,
+        };
+        let zero = (Slot::Fixed, 0, J26::zeros());
+        for (oi, o) in self.observations.iter().enumerate() {
+            let (r, j_rig, j_cam, j_x) = self.linearize_obs(o)?;
+            let e2 = r.norm_squared();
+            n.cost += 0.5 * loss.rho(e2);
+            let w = loss.weight(e2);
+            let (pslot, psize, jpb) = self.point_block(&o.point, layout);
+            let blocks: Blocks = [
+                (layout.rig[o.rig], 6, j_rig),
+                (layout.cam[o.cam], 6, j_cam),
+                (pslot, psize, j_x * jpb),
+                zero,
+            ];
+            self.accumulate(&mut n, &blocks, &r, w, Some(layout.obs_coupling[oi]));
+        }
+        for d in &self.distances {
+            let (xa, xb) = (self.point_world(&d.a), self.point_world(&d.b));
+            let diff = xa - xb;
+            let len = diff.norm().max(1e-12);
+            let s = self.pixel_sigma / d.sigma;
+            let r = Vec2::new((len - d.distance) * s, 0.0);
+            n.cost += 0.5 * r.x * r.x;
+            let u = diff.transpose() * (s / len);
+            let (sa, za, ja) = self.point_block(&d.a, layout);
+            let (sb, zb, jb) = self.point_block(&d.b, layout);
+            let mut j_a = J26::zeros();
+            j_a.fixed_view_mut::<1, 6>(0, 0).copy_from(&(u * ja));
+            let mut j_b = J26::zeros();
+            j_b.fixed_view_mut::<1, 6>(0, 0).copy_from(&(-u * jb));
+            self.accumulate(
+                &mut n,
+                &[(sa, za, j_a), (sb, zb, j_b), zero, zero],
+                &r,
+                1.0,
+                None,
+            );
+        }
+        for p in &self.priors {
+            let r = Vec2::new(self.prior_residual(p), 0.0);
+            n.cost += 0.5 * r.x * r.x;
+            let s = self.pixel_sigma / p.sigma;
+            let mut blocks: Blocks = [zero; 4];
+            for (i, (c, v)) in p.terms.iter().take(4).enumerate() {
+                let mut j = J26::zeros();
+                j.fixed_view_mut::<1, 6>(0, 0)
+                    .copy_from(&(v.transpose() * s));
+                blocks[i] = (layout.cam[*c], 6, j);
+            }
+            // Priors spanning more than 4 cameras are applied in chunks of 4 blocks;
+            // cross terms between chunks are dropped (a first-order approximation that
+            // only slows convergence along the held direction, never moves the minimum).
+            self.accumulate(&mut n, &blocks, &r, 1.0, None);
+            for chunk in p.terms.chunks(4).skip(1) {
+                let mut blocks: Blocks = [zero; 4];
+                for (i, (c, v)) in chunk.iter().enumerate() {
+                    let mut j = J26::zeros();
+                    j.fixed_view_mut::<1, 6>(0, 0)
+                        .copy_from(&(v.transpose() * s));
+                    blocks[i] = (layout.cam[*c], 6, j);
+                }
+                self.accumulate(&mut n, &blocks, &r, 1.0, None);
+            }
+        }
+        Some(n)
+    }
+
+    fn accumulate(
+        &self,
+        n: &mut Normal,
+        blocks: &Blocks,
+        r: &Vec2,
+        w: f64,
+        coupling: Option<[Option<usize>; 3]>,
+    ) {
+        for (a, &(sa, za, ja)) in blocks.iter().enumerate() {
+            if za == 0 {
+                continue;
+            }
+            let jta = ja.transpose() * w;
+            let ga = jta * r;
+            match sa {
+                Slot::Fixed => continue,
+                Slot::Reduced(oa) => {
+                    for k in 0..za {
+                        n.gr[oa + k] += ga[k];
+                    }
+                }
+                Slot::Elim(e) => n.ge[e] += ga,
+            }
+            for (b, &(sb, zb, jb)) in blocks.iter().enumerate().skip(a) {
+                if zb == 0 || sb == Slot::Fixed {
+                    continue;
+                }
+                let h = jta * jb;
+                match (sa, sb) {
+                    (Slot::Reduced(oa), Slot::Reduced(ob)) => {
+                        for i in 0..za {
+                            for j in 0..zb {
+                                n.hrr[(oa + i, ob + j)] += h[(i, j)];
+                                if oa != ob {
+                                    n.hrr[(ob + j, oa + i)] += h[(i, j)];
+                                }
+                            }
+                        }
+                    }
+                    (Slot::Elim(e), Slot::Elim(f)) if e == f => n.hee[e] += h,
+                    (Slot::Reduced(_), Slot::Elim(e)) | (Slot::Elim(e), Slot::Reduced(_)) => {
+                        // The coupling index was precomputed per position of the reduced
+                        // block in the observation (rig 0, camera 1, point 2).
+                        let (hr, which) = if matches!(sa, Slot::Elim(_)) {
+                            (h, b)
+                        } else {
+                            (h.transpose(), a)
+                        };
+                        if let Some(Some(c)) = coupling.map(|c| c[which]) {
+                            n.her[e][c] += hr;
+                        }
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+
+    /// Solve the damped system; returns the step for reduced and eliminated blocks.
+    fn solve_step(
+        &self,
+        layout: &Layout,
+        n: &Normal,
+        lambda: f64,
+    ) -> Option<(DVector<f64>, Vec<Vector6<f64>>)> {
+        let nr = layout.n_reduced;
+        let mut s = n.hrr.clone();
+        for i in 0..nr {
+            s[(i, i)] += lambda * n.hrr[(i, i)].max(1e-9);
+        }
+        let mut rhs = -n.gr.clone();
+        let mut einv = Vec::with_capacity(n.hee.len());
+        let mut dense = DenseRows::new(nr);
+        for (e, hee) in n.hee.iter().enumerate() {
+            let size = layout.elim_size[e];
+            let mut h = *hee;
+            for i in 0..size {
+                h[(i, i)] += lambda * hee[(i, i)].max(1e-9);
+            }
+            let inv = invert_block(&h, size)?;
+            eliminate_block(
+                &mut s,
+                &mut dense,
+                Some(&mut rhs),
+                &layout.couplings[e],
+                &n.her[e],
+                &inv,
+                &n.ge[e],
+                size,
+            );
+            einv.push(inv);
+        }
+        dense.flush(&mut s);
+        let dr = if nr > 0 {
+            s.cholesky()?.solve(&rhs)
+        } else {
+            DVector::zeros(0)
+        };
+        let mut de = Vec::with_capacity(n.hee.len());
+        for (e, inv) in einv.iter().enumerate() {
+            let mut b = -n.ge[e];
+            for (ca, &(oa, za)) in layout.couplings[e].iter().enumerate() {
+                let mut x = Vector6::zeros();
+                for k in 0..za {
+                    x[k] = dr[oa + k];
+                }
+                b -= n.her[e][ca] * x;
+            }
+            de.push(inv * b);
+        }
+        Some((dr, de))
+    }
+
+    fn apply_step(&self, layout: &Layout, dr: &DVector<f64>, de: &[Vector6<f64>]) -> BundleProblem {
+        let mut out = self.clone();
+        let get6 = |slot: Slot| -> Option<Vector6<f64>> {
+            match slot {
+                Slot::Fixed => None,
+                Slot::Reduced(o) => Some(Vector6::from_iterator((0..6).map(|k| dr[o + k]))),
+                Slot::Elim(e) => Some(de[e]),
+            }
+        };
+        let get3 = |slot: Slot| -> Option<Vec3> {
+            match slot {
+                Slot::Fixed => None,
+                Slot::Reduced(o) => Some(Vec3::new(dr[o], dr[o + 1], dr[o + 2])),
+                Slot::Elim(e) => Some(Vec3::new(de[e][0], de[e][1], de[e][2])),
+            }
+        };
+        let perturb = |pose: &mut Pose, d: Vector6<f64>| {
+            *pose = pose.perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]));
+        };
+        for (i, s) in layout.rig.iter().enumerate() {
+            if let Some(d) = get6(*s) {
+                perturb(&mut out.world_from_rig[i], d);
+            }
+        }
+        for (i, s) in layout.cam.iter().enumerate() {
+            if let Some(d) = get6(*s) {
+                perturb(&mut out.rig_from_cam[i], d);
+            }
+        }
+        for (i, s) in layout.body.iter().enumerate() {
+            if let Some(d) = get6(*s) {
+                perturb(&mut out.world_from_body[i], d);
+            }
+        }
+        for (i, s) in layout.point.iter().enumerate() {
+            if let Some(d) = get3(*s) {
+                out.points[i] += d;
+            }
+        }
+        out
+    }
+
+    /// Levenberg–Marquardt (Nielsen's damping update) until convergence.
+    pub fn solve(&mut self, opts: &LmOptions) -> BundleSummary {
+        let start = Instant::now();
+        let layout = self.layout();
+        let mut summary = BundleSummary {
+            iterations: 0,
+            initial_cost: f64::NAN,
+            final_cost: f64::NAN,
+            converged: false,
+            termination: String::new(),
+            seconds: 0.0,
+            reduced_dimension: layout.n_reduced,
+        };
+        let Some(mut normal) = self.normal_equations(&layout, &opts.loss) else {
+            summary.termination = "a point is behind its camera at the starting point".into();
+            return summary;
+        };
+        summary.initial_cost = normal.cost;
+        let mut lambda = 1e-4;
+        let mut nu = 2.0;
+        let mut last_relative_decrease = f64::INFINITY;
+        for it in 0..opts.max_iterations {
+            summary.iterations = it + 1;
+            let gmax = normal
+                .gr
+                .amax()
+                .max(normal.ge.iter().map(|g| g.amax()).fold(0.0, f64::max));
+            if gmax < opts.gradient_tolerance {
+                summary.converged = true;
+                summary.termination = "gradient below tolerance".into();
+                break;
+            }
+            let Some((dr, de)) = self.solve_step(&layout, &normal, lambda) else {
+                lambda *= nu;
+                nu *= 2.0;
+                if lambda > 1e20 {
+                    summary.termination = "damping exhausted (singular system)".into();
+                    break;
+                }
+                continue;
+            };
+            let candidate = self.apply_step(&layout, &dr, &de);
+            let new_cost = candidate.cost(&opts.loss);
+            // Predicted decrease of the damped model: ½ δᵀ(λ D δ − g).
+            let mut pred = 0.0;
+            for i in 0..layout.n_reduced {
+                pred += dr[i] * (lambda * normal.hrr[(i, i)].max(1e-9) * dr[i] - normal.gr[i]);
+            }
+            for (e, d) in de.iter().enumerate() {
+                for k in 0..layout.elim_size[e] {
+                    pred +=
+                        d[k] * (lambda * normal.hee[e][(k, k)].max(1e-9) * d[k] - normal.ge[e][k]);
+                }
+            }
+            pred *= 0.5;
+            let rho = (normal.cost - new_cost) / pred.max(1e-300);
+            if new_cost.is_finite() && new_cost <= normal.cost && rho > 0.0 {
+                let step_norm =
+                    (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt();
+                let decrease = normal.cost - new_cost;
+                last_relative_decrease = decrease / normal.cost.max(1e-300);
+                // Linearise at the candidate before accepting it: a point on the edge of
+                // a camera's depth range can evaluate but not linearise; then reject.
+                let Some(cand_normal) = candidate.normal_equations(&layout, &opts.loss) else {
+                    lambda *= nu;
+                    nu *= 2.0;
+                    continue;
+                };
+                *self = candidate;
+                normal = cand_normal;
+                lambda *= f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3));
+                nu = 2.0;
+                if decrease <= opts.function_tolerance * normal.cost.max(1e-300)
+                    || normal.cost < 1e-24
+                {
+                    summary.converged = true;
+                    summary.termination = "cost decrease below tolerance".into();
+                    break;
+                }
+                if step_norm < opts.parameter_tolerance * (1.0 + self.parameter_norm()) {
+                    summary.converged = true;
+                    summary.termination = "step below tolerance".into();
+                    break;
+                }
+            } else {
+                lambda *= nu;
+                nu *= 2.0;
+                if lambda > 1e20 {
+                    // No step decreases the cost any more: a minimum to machine precision.
+                    summary.converged = true;
+                    summary.termination = "no further decrease possible".into();
+                    break;
+                }
+            }
+        }
+        if summary.termination.is_empty() {
+            // Ceres' convergence test (relative decrease < 1e-6): still creeping along a
+            // flat direction is converged, not failed.
+            summary.converged = last_relative_decrease < 1e-6;
+            summary.termination = format!(
+                "iteration limit reached (last relative decrease {last_relative_decrease:.1e})"
+            );
+        }
+        summary.final_cost = normal.cost;
+        summary.seconds = start.elapsed().as_secs_f64();
+        summary
+    }
+
+    /// Solve with the robust loss of `opts` annealed from 16× its scale down to 1×.
+    /// Far from the solution a tight robust scale treats almost every residual as an
+    /// outlier and LM stalls in a bad minimum; a wide scale first avoids that.
+    pub fn solve_annealed(&mut self, opts: &LmOptions) -> BundleSummary {
+        let mut total: Option<BundleSummary> = None;
+        for factor in [16.0, 4.0, 1.0] {
+            let loss = match opts.loss {
+                Loss::Squared => {
+                    if factor > 1.0 {
+                        continue;
+                    }
+                    Loss::Squared
+                }
+                Loss::Huber { scale } => Loss::Huber {
+                    scale: scale * factor,
+                },
+                Loss::Cauchy { scale } => Loss::Cauchy {
+                    scale: scale * factor,
+                },
+            };
+            let s = self.solve(&LmOptions { loss, ..*opts });
+            total = Some(match total {
+                None => s,
+                Some(mut t) => {
+                    t.iterations += s.iterations;
+                    t.final_cost = s.final_cost;
+                    t.converged = s.converged;
+                    t.termination = s.termination;
+                    t.seconds += s.seconds;
+                    t
+                }
+            });
+        }
+        total.unwrap_or_else(|| self.solve(opts))
+    }
+
+    fn parameter_norm(&self) -> f64 {
+        let mut s = 0.0;
+        for p in self
+            .world_from_rig
+            .iter()
+            .chain(&self.rig_from_cam)
+            .chain(&self.world_from_body)
+        {
+            s += p.trans.norm_squared();
+        }
+        for p in &self.points {
+            s += p.norm_squared();
+        }
+        s.sqrt()
+    }
+
+    /// Information (inverse covariance, in units of 1/pixel² for unit pixel noise) of
+    /// the free extrinsic blocks, every other parameter marginalised out. Rows and
+    /// columns follow the free cameras in index order, `[dt, dφ]` each.
+    pub fn extrinsic_information(&self, loss: &Loss) -> Option<(Vec<usize>, DMatrix<f64>)> {
+        let layout = self.layout();
+        let n = self.normal_equations(&layout, loss)?;
+        // Schur complement of the eliminated blocks (undamped, pseudo-inverse if singular).
+        let mut s = n.hrr.clone();
+        let mut dense = DenseRows::new(layout.n_reduced);
+        for (e, hee) in n.hee.iter().enumerate() {
+            let inv = pseudo_inverse_block(hee, layout.elim_size[e]);
+            eliminate_block(
+                &mut s,
+                &mut dense,
+                None,
+                &layout.couplings[e],
+                &n.her[e],
+                &inv,
+                &n.ge[e],
+                layout.elim_size[e],
+            );
+        }
+        dense.flush(&mut s);
+        let cams: Vec<usize> = (0..self.rig_from_cam.len())
+            .filter(|&c| matches!(layout.cam[c], Slot::Reduced(_)))
+            .collect();
+        let keep: Vec<usize> = cams
+            .iter()
+            .flat_map(|&c| {
+                if let Slot::Reduced(o) = layout.cam[c] {
+                    (o..o + 6).collect::<Vec<_>>()
+                } else {
+                    vec![]
+                }
+            })
+            .collect();
+        let other: Vec<usize> = (0..layout.n_reduced)
+            .filter(|i| !keep.contains(i))
+            .collect();
+        if other.is_empty() {
+            return Some((cams, s.select_rows(&keep).select_columns(&keep)));
+        }
+        // Jacobi scaling first: rig poses, points and extrinsics differ by orders of
+        // magnitude, and unscaled the elimination loses enough precision to produce
+        // negative eigenvalues in the marginal information.
+        let d: Vec<f64> = (0..s.nrows())
+            .map(|i| 1.0 / s[(i, i)].abs().max(1e-300).sqrt())
+            .collect();
+        let scaled = DMatrix::from_fn(s.nrows(), s.ncols(), |i, j| s[(i, j)] * d[i] * d[j]);
+        let skk = scaled.select_rows(&keep).select_columns(&keep);
+        let sko = scaled.select_rows(&keep).select_columns(&other);
+        let soo = scaled.select_rows(&other).select_columns(&other);
+        let reduced = match soo.clone().cholesky() {
+            Some(ch) => &skk - &sko * ch.solve(&sko.transpose()),
+            None => &skk - &sko * symmetric_pseudo_inverse(&soo, 1e-14) * sko.transpose(),
+        };
+        let dk: Vec<f64> = keep.iter().map(|&i| d[i]).collect();
+        let info = DMatrix::from_fn(keep.len(), keep.len(), |i, j| {
+            reduced[(i, j)] / (dk[i] * dk[j])
+        });
+        Some((cams, (&info + info.transpose()) * 0.5))
+    }
+}
+
+/// Rows `B` of pending rank-k updates `S −= BᵀB`, applied by one matrix product per
+/// batch: the cache-friendly way to eliminate blocks coupled with most of `S`.
+struct DenseRows {
+    buf: DMatrix<f64>,
+    count: usize,
+}
+
+impl DenseRows {
+    const BATCH: usize = 512;
+
+    fn new(n: usize) -> Self {
+        Self {
+            buf: DMatrix::zeros(if n > 0 { Self::BATCH } else { 0 }, n),
+            count: 0,
+        }
+    }
+
+    fn flush(&mut self, s: &mut DMatrix<f64>) {
+        if self.count > 0 {
+            let b = self.buf.rows(0, self.count);
+            // An explicit transpose lets nalgebra use its blocked matrixmultiply kernel
+            // (its gemm_tr is a plain dot-product loop: 25 s vs 10 s at K = 1000).
+            let bt = b.transpose();
+            s.gemm(-1.0, &bt, &b, 1.0);
+            self.buf.rows_mut(0, self.count).fill(0.0);
+            self.count = 0;
+        }
+    }
+}
+
+/// Schur elimination of one eliminated block of size `ze` with inverse `inv`:
+/// `S_ab −= H_aᵀ E⁻¹ H_b` for every pair of its couplings, and `rhs_a += H_aᵀ E⁻¹ g`.
+///
+/// A block coupled with a large part of `S` (a rig pose seeing every point) becomes
+/// `ze` dense rows `B = Mᵀ A` with `M Mᵀ = E⁻¹`, batched into a matrix product; a block
+/// with few couplings (a point seen in a few frames) is applied pair by pair.
+#[allow(clippy::too_many_arguments)]
+fn eliminate_block(
+    s: &mut DMatrix<f64>,
+    dense: &mut DenseRows,
+    rhs: Option<&mut DVector<f64>>,
+    couplings: &[(usize, usize)],
+    her: &[Matrix6<f64>],
+    inv: &Matrix6<f64>,
+    g: &Vector6<f64>,
+    ze: usize,
+) {
+    if let Some(rhs) = rhs {
+        let ig = inv * g;
+        for (h, &(oa, za)) in her.iter().zip(couplings) {
+            for i in 0..za {
+                rhs[oa + i] += (0..ze).map(|k| h[(k, i)] * ig[k]).sum::<f64>();
+            }
+        }
+    }
+    let coupled: usize = couplings.iter().map(|c| c.1).sum();
+    if coupled == 0 {
+        // Nothing in the reduced system depends on this block (e.g. a scene whose only
+        // free parameters are eliminated ones): no update, and no dense row to batch.
+        return;
+    }
+    if coupled * 8 >= s.nrows() {
+        // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse).
+        let sub = DMatrix::from_fn(ze, ze, |i, j| inv[(i, j)]);
+        let eig = rigcal_core::linalg::symmetric_eigen(&sub);
+        for r in 0..ze {
+            let l = eig.eigenvalues[r];
+            if l <= 0.0 {
+                continue;
+            }
+            let m: Vec<f64> = (0..ze)
+                .map(|k| eig.eigenvectors[(k, r)] * l.sqrt())
+                .collect();
+            let row = dense.count;
+            for (h, &(oa, za)) in her.iter().zip(couplings) {
+                for j in 0..za {
+                    dense.buf[(row, oa + j)] = (0..ze).map(|k| m[k] * h[(k, j)]).sum::<f64>();
+                }
+            }
+            dense.count += 1;
+            if dense.count == DenseRows::BATCH {
+                dense.flush(s);
+            }
+        }
+        return;
+    }
+    // at_a = H_aᵀ E⁻¹ (za × ze), once per coupling.
+    let ats: Vec<Matrix6<f64>> = couplings
+        .iter()
+        .zip(her)
+        .map(|(&(_, za), h)| {
+            let mut at = Matrix6::zeros();
+            for i in 0..za {
+                for k in 0..ze {
+                    let mut acc = 0.0;
+                    for m in 0..ze {
+                        acc += h[(m, i)] * inv[(m, k)];
+                    }
+                    at[(i, k)] = acc;
+                }
+            }
+            at
+        })
+        .collect();
+    let nrows = s.nrows();
+    let data = s.as_mut_slice();
+    for (a, (at, &(oa, za))) in ats.iter().zip(couplings).enumerate() {
+        for (b, (hb, &(ob, zb))) in her.iter().zip(couplings).enumerate().skip(a) {
+            for i in 0..za {
+                for j in 0..zb {
+                    let mut v = 0.0;
+                    for k in 0..ze {
+                        v += at[(i, k)] * hb[(k, j)];
+                    }
+                    data[(oa + i) + (ob + j) * nrows] -= v;
+                    if a != b {
+                        data[(ob + j) + (oa + i) * nrows] -= v;
+                    }
+                }
+            }
+        }
+    }
+}
+
+fn invert_block(h: &Matrix6<f64>, size: usize) -> Option<Matrix6<f64>> {
+    let mut out = Matrix6::zeros();
+    if size == 3 {
+        let inv = h
+            .fixed_view::<3, 3>(0, 0)
+            .into_owned()
+            .cholesky()?
+            .inverse();
+        out.fixed_view_mut::<3, 3>(0, 0).copy_from(&inv);
+    } else {
+        out = h.cholesky()?.inverse();
+    }
+    Some(out)
+}
+
+fn pseudo_inverse_block(h: &Matrix6<f64>, size: usize) -> Matrix6<f64> {
+    let m = DMatrix::from_fn(size, size, |i, j| h[(i, j)]);
+    let inv = symmetric_pseudo_inverse(&m, 1e-12);
+    let mut out = Matrix6::zeros();
+    for i in 0..size {
+        for j in 0..size {
+            out[(i, j)] = inv[(i, j)];
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn small_problem() -> BundleProblem {
+        problem_with_rigs(4)
+    }
+
+    fn problem_with_rigs(n_rigs: usize) -> BundleProblem {
+        let cam = Camera::pinhole(700.0, 700.0, 320.0, 240.0, 640, 480);
+        let rig_from_cam = vec![
+            Pose::identity(),
+            Pose::from_rotvec(Vec3::new(0.1, 3.0, 0.05), Vec3::new(0.1, 0.0, -1.5)),
+        ];
+        // General 3D motion: rotation axes differ between poses (else the extrinsic is singular).
+        let axes = [
+            Vec3::zeros(),
+            Vec3::new(0.2, 0.0, 0.05),
+            Vec3::new(0.0, 0.25, -0.1),
+            Vec3::new(-0.1, 0.1, 0.3),
+        ];
+        let world_from_rig: Vec<Pose> = (0..n_rigs)
+            .map(|k| {
+                let w = axes[k % 4] * (1.0 + 0.1 * (k / 4) as f64);
+                Pose::from_rotvec(
+                    w,
+                    Vec3::new(0.1 * (k % 5) as f64, 0.05, 0.02 * (k % 7) as f64),
+                )
+            })
+            .collect();
+        let mut points = Vec::new();
+        let mut observations = Vec::new();
+        for c in 0..2 {
+            for i in 0..8 {
+                let p_cam = Vec3::new(
+                    -0.4 + 0.11 * i as f64,
+                    0.3 * ((i % 3) as f64 - 1.0),
+                    2.0 + 0.1 * (i % 4) as f64,
+                );
+                let world = world_from_rig[0] * rig_from_cam[c];
+                points.push(world.apply(&p_cam));
+                for k in 0..n_rigs {
+                    observations.push(Obs {
+                        rig: k,
+                        cam: c,
+                        point: PointRef::Free(points.len() - 1),
+                        uv: Vec2::zeros(),
+                    });
+                }
+            }
+        }
+        let world_from_body = vec![Pose::from_rotvec(
+            Vec3::new(0.2, 0.1, 0.0),
+            Vec3::new(0.0, 0.0, 2.5),
+        )];
+        for i in 0..4 {
+            for k in 0..n_rigs {
+                observations.push(Obs {
+                    rig: k,
+                    cam: 0,
+                    point: PointRef::Body {
+                        body: 0,
+                        local: Vec3::new(0.1 * i as f64, 0.05 * (i % 2) as f64, 0.0),
+                    },
+                    uv: Vec2::zeros(),
+                });
+            }
+        }
+        let mut p = BundleProblem {
+            cameras: vec![cam.clone(), cam],
+            rig_from_cam,
+            cam_fixed: vec![true, false],
+            world_from_rig,
+            rig_fixed: (0..n_rigs).map(|k| k == 0).collect(),
+            points,
+            world_from_body,
+            body_fixed: vec![false],
+            observations,
+            distances: vec![DistanceConstraint {
+                a: PointRef::Free(0),
+                b: PointRef::Free(3),
+                distance: 0.0,
+                sigma: 1e-3,
+            }],
+            priors: vec![],
+            pixel_sigma: 1.0,
+        };
+        // Make the observations exact.
+        for i in 0..p.observations.len() {
+            let r = p.residual(&p.observations[i]).unwrap();
+            p.observations[i].uv += r;
+        }
+        p.distances[0].distance = (p.points[0] - p.points[3]).norm();
+        p
+    }
+
+    #[test]
+    fn jacobians_match_finite_differences() {
+        let p = small_problem();
+        let o = p.observations[5];
+        let (_, j_rig, j_cam, j_x) = p.linearize_obs(&o).unwrap();
+        let h = 1e-7;
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = h;
+            let pert = |pose: &Pose, s: f64| {
+                pose.perturbed(
+                    &(Vec3::new(d[0], d[1], d[2]) * s),
+                    &(Vec3::new(d[3], d[4], d[5]) * s),
+                )
+            };
+            let mut pp = p.clone();
+            pp.world_from_rig[o.rig] = pert(&p.world_from_rig[o.rig], 1.0);
+            let mut pm = p.clone();
+            pm.world_from_rig[o.rig] = pert(&p.world_from_rig[o.rig], -1.0);
+            let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
+            assert!(
+                (fd - j_rig.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "rig {k}: {fd:?} vs {:?}",
+                j_rig.column(k)
+            );
+            let mut pp = p.clone();
+            pp.rig_from_cam[o.cam] = pert(&p.rig_from_cam[o.cam], 1.0);
+            let mut pm = p.clone();
+            pm.rig_from_cam[o.cam] = pert(&p.rig_from_cam[o.cam], -1.0);
+            let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
+            assert!(
+                (fd - j_cam.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "cam {k}"
+            );
+        }
+        let PointRef::Free(i) = o.point else { panic!() };
+        for k in 0..3 {
+            let mut pp = p.clone();
+            pp.points[i][k] += h;
+            let mut pm = p.clone();
+            pm.points[i][k] -= h;
+            let fd = (pp.residual(&o).unwrap() - pm.residual(&o).unwrap()) / (2.0 * h);
+            assert!(
+                (fd - j_x.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "point {k}"
+            );
+        }
+        // Body Jacobian through point_block.
+        let ob = *p.observations.last().unwrap();
+        let layout = p.layout();
+        let (_, _, _, jx) = p.linearize_obs(&ob).unwrap();
+        let (_, _, jb) = p.point_block(&ob.point, &layout);
+        let j = jx * jb;
+        for k in 0..6 {
+            let mut d = Vector6::zeros();
+            d[k] = h;
+            let mut pp = p.clone();
+            pp.world_from_body[0] = p.world_from_body[0]
+                .perturbed(&Vec3::new(d[0], d[1], d[2]), &Vec3::new(d[3], d[4], d[5]));
+            let mut pm = p.clone();
+            pm.world_from_body[0] = p.world_from_body[0]
+                .perturbed(&-Vec3::new(d[0], d[1], d[2]), &-Vec3::new(d[3], d[4], d[5]));
+            let fd = (pp.residual(&ob).unwrap() - pm.residual(&ob).unwrap()) / (2.0 * h);
+            assert!(
+                (fd - j.column(k)).norm() < 1e-4 * (1.0 + fd.norm()),
+                "body {k}"
+            );
+        }
+    }
+
+    #[test]
+    fn recovers_truth_from_perturbed_start() {
+        for n_rigs in [4, 40] {
+            recovers_truth(n_rigs);
+        }
+    }
+
+    fn recovers_truth(n_rigs: usize) {
+        let truth = problem_with_rigs(n_rigs);
+        // 4 rig poses stay in the reduced system; with 40 the rig poses are eliminated.
+        assert_eq!(
+            truth.layout().elim_size.iter().all(|s| *s == 6),
+            n_rigs == 40
+        );
+        let mut p = truth.clone();
+        p.rig_from_cam[1] = p.rig_from_cam[1].perturbed(
+            &Vec3::new(0.02, -0.03, 0.01),
+            &Vec3::new(0.01, -0.02, 0.015),
+        );
+        for k in 1..n_rigs {
+            p.world_from_rig[k] = p.world_from_rig[k]
+                .perturbed(&Vec3::new(0.01, 0.0, -0.01), &Vec3::new(0.0, 0.01, 0.0));
+        }
+        for x in p.points.iter_mut() {
+            *x += Vec3::new(0.01, -0.01, 0.02);
+        }
+        p.world_from_body[0] =
+            p.world_from_body[0].perturbed(&Vec3::new(0.01, 0.01, 0.0), &Vec3::new(0.02, 0.0, 0.0));
+        let s = p.solve(&LmOptions::default());
+        assert!(s.converged, "{s:?}");
+        assert!(s.final_cost < 1e-16, "{s:?}");
+        let (dr, dt) = p.rig_from_cam[1].distance(&truth.rig_from_cam[1]);
+        assert!(dr < 1e-9 && dt < 1e-9, "{dr} {dt}");
+        let (cams, info) = p.extrinsic_information(&Loss::Squared).unwrap();
+        assert_eq!(cams, vec![1]);
+        assert_eq!(info.nrows(), 6);
+    }
+}

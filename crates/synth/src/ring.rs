@@ -1,0 +1,412 @@
+//! Synthetic vanishing-method sessions: the ring of Wu et al. §5.1 (Table 2), eight
+//! cameras 150 mm above the ground looking outwards, each with a line target on the
+//! ground in front of it, and an auxiliary camera photographing each neighbouring pair
+//! from 40° above the ground (the best pitch of their §4.1).
+//!
+//! Frames (the paper's ECF): `y` down, the ground is `y = 0`; camera `k` sits at Table 2's
+//! `(x, y, z)` with yaw about `y` (0° looks along `+z`, 90° along `+x`). As in the paper,
+//! every feature line is sampled with one point per pixel of its image length and each
+//! point gets Gaussian noise of `noise_px` on both coordinates.
+
+use super::{camera_spec, Truth};
+use rand::{Rng, SeedableRng};
+use rand_distr::{Distribution, Normal};
+use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
+use rigcal_core::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
+use rigcal_core::target::line_target::{LineTarget, LINES};
+use std::collections::BTreeMap;
+
+/// Table 2: camera positions (mm) and yaw (deg); pitch and roll are 0.
+pub const TABLE2: [(f64, f64, f64, f64); 8] = [
+    (100.0, -150.0, 0.0, 28.0),
+    (600.0, -150.0, -400.0, 64.0),
+    (600.0, -150.0, -500.0, 125.0),
+    (200.0, -150.0, -1000.0, 158.0),
+    (-200.0, -150.0, -1000.0, 202.0),
+    (-600.0, -150.0, -500.0, 235.0),
+    (-600.0, -150.0, -400.0, 296.0),
+    (-100.0, -150.0, 0.0, 332.0),
+];
+/// Wu §5.1: L1 = 500 mm, L2 = 200 mm.
+pub const TARGET: LineTarget = LineTarget {
+    length: 0.5,
+    spacing: 0.2,
+};
+/// Where the targets and the auxiliary camera stand: the paper gives neither (Table 2
+/// has the cameras only), so these are the factors of a placement study
+/// (`rigcal bench ring --target-distance --aux-distance --aux-pitch`).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RingLayout {
+    /// Ground distance from a camera to its target's nearest corner (m).
+    pub target_distance: f64,
+    /// The auxiliary camera's pitch below the horizon (deg; Wu §4.1's best is 40°).
+    pub aux_pitch_deg: f64,
+    /// The auxiliary camera's distance to the midpoint of the pair it photographs (m).
+    pub aux_distance: f64,
+    /// Auxiliary images per pair: the first at `aux_pitch_deg`, the others steeper and
+    /// shallower by [`AUX_VIEW_PITCH_STEP_DEG`], 2×, … .
+    pub aux_views: usize,
+}
+
+/// Pitch step (deg) between the auxiliary views of one pair when there are several. A
+/// pitch step, not a turn about the pair: turning the camera by 8-20° laid one line
+/// group of some targets within 1° of the image plane (vanishing point at infinity).
+pub const AUX_VIEW_PITCH_STEP_DEG: f64 = 8.0;
+
+impl Default for RingLayout {
+    fn default() -> Self {
+        Self {
+            target_distance: 0.35,
+            aux_pitch_deg: 40.0,
+            aux_distance: 1.0,
+            aux_views: 1,
+        }
+    }
+}
+
+pub fn rig_camera() -> Camera {
+    Camera::pinhole(796.44, 796.44, 512.0, 384.0, 1024, 768)
+}
+
+pub fn aux_camera() -> Camera {
+    Camera::pinhole(512.0, 512.0, 512.0, 384.0, 1024, 768)
+}
+
+/// A camera at `position` looking along `forward` (unit), its `x` axis horizontal.
+fn looking(position: Vec3, forward: Vec3) -> Pose {
+    let z = forward.normalize();
+    let x = Vec3::y().cross(&z).normalize();
+    let y = z.cross(&x);
+    Pose::new(nalgebra::Matrix3::from_columns(&[x, y, z]), position)
+}
+
+/// The scene in the ECF: `ecf_from_cam` per rig camera, `ecf_from_target` per target,
+/// `ecf_from_aux[v·8 + k]` for view `v` of neighbouring pair `(k, k+1 mod 8)` (see
+/// [`RingScene::pair_of`]).
+pub struct RingScene {
+    pub ecf_from_cam: Vec<Pose>,
+    pub ecf_from_target: Vec<Pose>,
+    pub ecf_from_aux: Vec<Pose>,
+}
+
+impl RingScene {
+    /// The pair `(k, k+1 mod 8)` auxiliary view `i` photographs.
+    pub fn pair_of(&self, i: usize) -> (usize, usize) {
+        let k = i % 8;
+        (k, (k + 1) % 8)
+    }
+}
+
+/// Table 2's ring in the default [`RingLayout`].
+pub fn table2_scene() -> RingScene {
+    ring_scene(&RingLayout::default())
+}
+
+/// Table 2's cameras with targets and auxiliary views placed by `layout`.
+pub fn ring_scene(layout: &RingLayout) -> RingScene {
+    let ecf_from_cam: Vec<Pose> = TABLE2
+        .iter()
+        .map(|&(x, y, z, yaw)| {
+            Pose::new(
+                so3::exp(&Vec3::new(0.0, yaw.to_radians(), 0.0)),
+                Vec3::new(x, y, z) * 1e-3,
+            )
+        })
+        .collect();
+    let ecf_from_target: Vec<Pose> = ecf_from_cam
+        .iter()
+        .map(|c| {
+            // Diagonal (the symmetry axis) pointing back at the camera, P1 nearest.
+            let ahead = Vec3::new(c.rot[(0, 2)], 0.0, c.rot[(2, 2)]).normalize();
+            let p1 = Vec3::new(c.trans.x, 0.0, c.trans.z) + ahead * layout.target_distance;
+            let quarter = |a: f64| so3::exp(&Vec3::new(0.0, a.to_radians(), 0.0)) * ahead;
+            let (x, z) = (quarter(45.0), quarter(-45.0));
+            let y = z.cross(&x);
+            Pose::new(nalgebra::Matrix3::from_columns(&[x, y, z]), p1)
+        })
+        .collect();
+    let centre: Vec3 = ecf_from_cam.iter().map(|c| c.trans).sum::<Vec3>() / 8.0;
+    let target_centre = |t: &Pose| {
+        let c = TARGET.corners();
+        t.apply(&(c.iter().sum::<Vec3>() / LINES as f64))
+    };
+    let ecf_from_aux = (0..8 * layout.aux_views.max(1))
+        .map(|i| {
+            let (k, v) = (i % 8, i / 8);
+            let mid = (target_centre(&ecf_from_target[k])
+                + target_centre(&ecf_from_target[(k + 1) % 8]))
+                / 2.0;
+            // View v: 0, +1, −1, +2, −2, … pitch steps.
+            let step = v.div_ceil(2) as f64 * if v % 2 == 1 { 1.0 } else { -1.0 };
+            let out = Vec3::new(mid.x - centre.x, 0.0, mid.z - centre.z).normalize();
+            let p = (layout.aux_pitch_deg + AUX_VIEW_PITCH_STEP_DEG * step).to_radians();
+            let forward = -out * p.cos() + Vec3::y() * p.sin();
+            looking(mid - forward * layout.aux_distance, forward)
+        })
+        .collect();
+    RingScene {
+        ecf_from_cam,
+        ecf_from_target,
+        ecf_from_aux,
+    }
+}
+
+/// Points along every feature line of `target` as `camera` at `cam_from_target` sees them:
+/// one per pixel of image length, noisy, those outside the image (8 px margin) dropped.
+pub fn sample_lines(
+    camera: &Camera,
+    cam_from_target: &Pose,
+    target: &LineTarget,
+    target_id: &str,
+    noise_px: f64,
+    rng: &mut impl Rng,
+) -> Vec<LineSpec> {
+    let normal = Normal::new(0.0, noise_px.max(1e-300)).expect("finite σ");
+    let margin = 8.0;
+    (0..LINES)
+        .map(|m| {
+            let (a, b) = target.segment(m);
+            let proj = |x: Vec3| camera.project(&cam_from_target.apply(&x));
+            let n = match (proj(a), proj(b)) {
+                (Some(pa), Some(pb)) => ((pa - pb).norm().round() as usize).max(2),
+                _ => 0,
+            };
+            let points = (0..n)
+                .filter_map(|i| {
+                    let s = (i as f64 + 0.5) / n as f64;
+                    let p = proj(a + (b - a) * s)?;
+                    let p = if noise_px > 0.0 {
+                        p + Vec2::new(normal.sample(rng), normal.sample(rng))
+                    } else {
+                        p
+                    };
+                    let inside = p.x >= margin
+                        && p.y >= margin
+                        && p.x <= camera.width as f64 - 1.0 - margin
+                        && p.y <= camera.height as f64 - 1.0 - margin;
+                    inside.then_some([p.x, p.y])
+                })
+                .collect();
+            LineSpec {
+                target: target_id.into(),
+                line: m as u8 + 1,
+                points,
+            }
+        })
+        .collect()
+}
+
+/// White paper around each printed L (m).
+pub const PRINT_MARGIN: f64 = 0.05;
+
+/// Render line targets as `camera` sees them: each a dark L filled on a white sheet
+/// ([`rigcal_detect::linetarget`]'s print), on a grey ground. The targets must share one
+/// plane (the ring's lie on the ground); `cam_from_targets[0]`'s plane is rendered.
+pub fn render_line_targets(
+    camera: &Camera,
+    cam_from_targets: &[Pose],
+    target: &LineTarget,
+    opts: &crate::render::RenderOptions,
+) -> image::GrayImage {
+    // Board (x, y, 0) of the renderer = target (x, 0, y): a proper rotation.
+    let target_from_board = Pose::new(
+        nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]),
+        Vec3::zeros(),
+    );
+    let first = cam_from_targets[0];
+    let others: Vec<Pose> = cam_from_targets
+        .iter()
+        .map(|t| t.inverse() * first)
+        .collect();
+    let (l1, l2, m) = (target.length, target.spacing, PRINT_MARGIN);
+    let shade = move |bx: f64, by: f64| -> Option<bool> {
+        let mut on_sheet = false;
+        for t in &others {
+            let p = t.apply(&Vec3::new(bx, 0.0, by));
+            let (x, z) = (p.x, p.z);
+            if (0.0..=l1).contains(&x) && (0.0..=l2).contains(&z)
+                || (0.0..=l2).contains(&x) && (0.0..=l1).contains(&z)
+            {
+                return Some(false);
+            }
+            on_sheet |= (-m..=l1 + m).contains(&x) && (-m..=l1 + m).contains(&z);
+        }
+        on_sheet.then_some(true)
+    };
+    crate::render::render(camera, &(first * target_from_board), &shade, opts)
+}
+
+/// The ring as a session of images: `scene`'s 8 rig images (`rig/camK.png`, with
+/// `frames[0].line_targets`) and 8 auxiliary images (`aux/K.png`, each pair named left
+/// to right as the auxiliary camera sees it), rendered with grey-level noise
+/// `noise_grey`; no line points. Returns the manifest, the truth and the PNG files by
+/// path.
+pub fn image_session(
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+    noise_grey: f64,
+    seed: u64,
+) -> (SessionManifest, Truth, BTreeMap<String, Vec<u8>>) {
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let (mut m, truth) = generate_with(&mut rng, 0.0, rig, aux, scene);
+    let opts = |k: u64| crate::render::RenderOptions {
+        noise_sigma: noise_grey,
+        seed: seed.wrapping_mul(1000).wrapping_add(k),
+        ..Default::default()
+    };
+    let png = |img: image::GrayImage| {
+        let mut out = std::io::Cursor::new(Vec::new());
+        img.write_to(&mut out, image::ImageFormat::Png)
+            .map(|_| out.into_inner())
+            .unwrap_or_default()
+    };
+    let mut files = BTreeMap::new();
+    let frame = &mut m.frames[0];
+    frame.lines.clear();
+    for k in 0..8 {
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+        let path = format!("rig/cam{}.png", k + 1);
+        let img = render_line_targets(rig, &[cam_from_target], &TARGET, &opts(k as u64));
+        files.insert(path.clone(), png(img));
+        frame.images.insert(format!("cam{}", k + 1), path);
+    }
+    let centre = TARGET.corners().iter().sum::<Vec3>() / LINES as f64;
+    for (i, r) in m.ring.iter_mut().enumerate() {
+        let (k, j) = scene.pair_of(i);
+        let poses = [k, j].map(|t| scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t]);
+        let u = |p: &Pose| aux.project(&p.apply(&centre)).map_or(0.0, |q| q.x);
+        let (a, b) = (format!("t{}", k + 1), format!("t{}", j + 1));
+        r.targets = if u(&poses[0]) <= u(&poses[1]) {
+            vec![a, b]
+        } else {
+            vec![b, a]
+        };
+        let path = format!("aux/{i}.png");
+        let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + i as u64));
+        files.insert(path.clone(), png(img));
+        r.lines.clear();
+        r.image = Some(path);
+    }
+    (m, truth, files)
+}
+
+/// The `wu-table2` session and its truth.
+pub fn generate(rng: &mut impl Rng, noise_px: f64) -> (SessionManifest, Truth) {
+    generate_with(rng, noise_px, &rig_camera(), &aux_camera(), &table2_scene())
+}
+
+/// A ring session of `scene` seen through the given rig and auxiliary cameras (any model:
+/// line points are sampled through the distortion, as a lens images them).
+pub fn generate_with(
+    rng: &mut impl Rng,
+    noise_px: f64,
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+) -> (SessionManifest, Truth) {
+    generate_split(rng, [noise_px, noise_px], rig, aux, scene)
+}
+
+/// [`generate_with`] with separate noise on the rig images and on the auxiliary images
+/// (`[rig, aux]`, px), to see which of the two limits the result.
+pub fn generate_split(
+    rng: &mut impl Rng,
+    [rig_noise, aux_noise]: [f64; 2],
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+) -> (SessionManifest, Truth) {
+    let cam_ids: Vec<String> = (1..=8).map(|k| format!("cam{k}")).collect();
+    let target_ids: Vec<String> = (1..=8).map(|k| format!("t{k}")).collect();
+    let mut lines = BTreeMap::new();
+    for k in 0..8 {
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+        lines.insert(
+            cam_ids[k].clone(),
+            sample_lines(
+                rig,
+                &cam_from_target,
+                &TARGET,
+                &target_ids[k],
+                rig_noise,
+                rng,
+            ),
+        );
+    }
+    let ring = (0..scene.ecf_from_aux.len())
+        .map(|i| {
+            let (k, j) = scene.pair_of(i);
+            let mut l = Vec::new();
+            for t in [k, j] {
+                let aux_from_target = scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t];
+                l.extend(sample_lines(
+                    aux,
+                    &aux_from_target,
+                    &TARGET,
+                    &target_ids[t],
+                    aux_noise,
+                    rng,
+                ));
+            }
+            RingSpec {
+                index: i as i64,
+                targets: vec![target_ids[k].clone(), target_ids[j].clone()],
+                image: None,
+                lines: l,
+            }
+        })
+        .collect();
+    let manifest = SessionManifest {
+        version: 1,
+        vehicle_id: Some("synth-wu-table2".into()),
+        method: rigcal_core::session::Method::Vanishing,
+        reference_camera: cam_ids[0].clone(),
+        cameras: cam_ids.iter().map(|id| camera_spec(id, rig)).collect(),
+        targets: target_ids
+            .iter()
+            .map(|id| TargetSpec::LineTarget {
+                id: id.clone(),
+                length: TARGET.length,
+                spacing: TARGET.spacing,
+            })
+            .collect(),
+        scale: vec![],
+        frames: vec![FrameSpec {
+            index: 0,
+            timestamp: None,
+            images: BTreeMap::new(),
+            observations: BTreeMap::new(),
+            lines,
+            line_targets: (0..8)
+                .map(|k| (cam_ids[k].clone(), target_ids[k].clone()))
+                .collect(),
+        }],
+        priors: None,
+        auxiliary_camera: Some(camera_spec("aux", aux)),
+        ring,
+    };
+    let ref_from_ecf = scene.ecf_from_cam[0].inverse();
+    let truth = Truth {
+        preset: "wu-table2".into(),
+        reference_camera: cam_ids[0].clone(),
+        ref_from_cam: cam_ids
+            .iter()
+            .zip(&scene.ecf_from_cam)
+            .map(|(id, p)| (id.clone(), ref_from_ecf * *p))
+            .collect(),
+        world_from_rig: vec![scene.ecf_from_cam[0]],
+        motion: "static".into(),
+        points: target_ids
+            .iter()
+            .zip(&scene.ecf_from_target)
+            .flat_map(|(id, t)| {
+                TARGET.corners().into_iter().enumerate().map(move |(m, c)| {
+                    let p = t.apply(&c);
+                    (format!("line:{id}:{}", m + 1), [p.x, p.y, p.z])
+                })
+            })
+            .collect(),
+    };
+    (manifest, truth)
+}

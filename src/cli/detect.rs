@@ -1,0 +1,102 @@
+//! `rigcal detect`: targets and camera from JSON files, detections as JSON on stdout.
+
+use anyhow::{anyhow, Context, Result};
+use clap::builder::RangedU64ValueParser;
+use rigcal_core::session::{camera_from_spec, CameraSpec, TargetSpec};
+use rigcal_detect::{detect_tags, DetectOptions};
+use rigcal_engine::pipeline::detection::{decode_gray, DEFAULT_MAX_IMAGE_PIXELS};
+use serde_json::{json, Value};
+use std::path::{Path, PathBuf};
+
+/// Detect AprilTags / AprilGrid corners in images; prints detections as JSON (one
+/// object per image, an array when several are given).
+#[derive(clap::Args)]
+pub struct Args {
+    #[arg(required = true)]
+    images: Vec<PathBuf>,
+    /// A target definition as in a session's `targets[]` (aprilgrid or apriltags),
+    /// or an array of them.
+    #[arg(long)]
+    target: PathBuf,
+    /// A camera as in a session's `cameras[]`: sides are then fitted in the
+    /// undistorted plane (better corners under distortion).
+    #[arg(long)]
+    camera: Option<PathBuf>,
+    /// Threads for the tags of one image (default: the machine's cores; 1 to time a
+    /// single core).
+    #[arg(long, value_parser = RangedU64ValueParser::<usize>::new().range(1..=256))]
+    threads: Option<usize>,
+}
+
+fn read(p: &Path) -> Result<Vec<u8>> {
+    std::fs::read(p).with_context(|| format!("reading {}", p.display()))
+}
+
+pub fn run(a: Args) -> Result<i32> {
+    let threads = a
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let text = read(&a.target)?;
+    let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
+        Ok(t) => t,
+        Err(_) => vec![serde_json::from_slice::<TargetSpec>(&text).map_err(|e| {
+            anyhow!("--target: a target object (aprilgrid | apriltags | line_target) or an array of them: {e}")
+        })?],
+    };
+    let camera = match &a.camera {
+        Some(p) => {
+            let spec: CameraSpec = serde_json::from_slice(&read(p)?)
+                .map_err(|e| anyhow!("--camera: a camera as in a session's cameras[]: {e}"))?;
+            Some(camera_from_spec(&spec, "camera").map_err(|e| anyhow!("--camera: {e}"))?)
+        }
+        None => None,
+    };
+    // Line targets (Wu's L) are found by shape, whatever their size; their lines and
+    // corners are reported per L found, left to right.
+    let lines_only = targets
+        .iter()
+        .all(|t| matches!(t, TargetSpec::LineTarget { .. }));
+    // The detector's decoder table is built once per thread (as a worker keeps it), not
+    // inside the first image's `elapsed_ms`.
+    rigcal_detect::quads::warm_up(&DetectOptions::default().quads).map_err(|e| anyhow!(e))?;
+    let mut out = Vec::new();
+    let mut failures = 0;
+    for path in &a.images {
+        let bytes = read(path)?;
+        let size = camera.as_ref().map(|c| (c.width, c.height));
+        let result = decode_gray(&bytes, size, DEFAULT_MAX_IMAGE_PIXELS).and_then(|gray| {
+            let start = std::time::Instant::now();
+            let v = if lines_only {
+                let lens = rigcal_detect::refine::Lens(camera.as_ref());
+                let found = rigcal_detect::linetarget::detect_line_targets(&gray, lens);
+                json!({ "line_targets": found })
+            } else {
+                let opts = DetectOptions {
+                    threads,
+                    ..DetectOptions::default()
+                };
+                let d = detect_tags(&gray, &targets, camera.as_ref(), &opts)?;
+                serde_json::to_value(&d).map_err(|e| e.to_string())?
+            };
+            Ok((v, start.elapsed().as_secs_f64() * 1e3))
+        });
+        out.push(match result {
+            Ok((mut v, ms)) => {
+                v["image"] = json!(path.display().to_string());
+                v["elapsed_ms"] = json!(ms);
+                v
+            }
+            Err(e) => {
+                failures += 1;
+                json!({"image": path.display().to_string(), "error": e})
+            }
+        });
+    }
+    let doc = if out.len() == 1 {
+        out.remove(0)
+    } else {
+        Value::Array(out)
+    };
+    println!("{}", serde_json::to_string_pretty(&doc)?);
+    Ok(if failures > 0 { 1 } else { 0 })
+}
