@@ -2,7 +2,7 @@
 //! completion, retry with backoff, attempt limits, cancellation.
 
 use rigcal_service::jobs::acceptance::ResultSummary;
-use rigcal_service::jobs::queue::Queue;
+use rigcal_service::jobs::queue::{FailOutcome, JobStatus, Queue};
 use rigcal_service::store::Store;
 use serde_json::json;
 
@@ -65,7 +65,7 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .complete(
             &job.id,
             "a",
-            "succeeded",
+            JobStatus::Succeeded,
             "{}",
             &ResultSummary::default(),
             None
@@ -76,7 +76,7 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .complete(
             &job.id,
             "b",
-            "succeeded",
+            JobStatus::Succeeded,
             "{\"x\":1}",
             &ResultSummary {
                 residual_rms_px: Some(0.3),
@@ -90,7 +90,7 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
         .complete(
             &job.id,
             "b",
-            "succeeded",
+            JobStatus::Succeeded,
             "{}",
             &ResultSummary::default(),
             None
@@ -109,22 +109,28 @@ async fn transient_failures_back_off_then_fail_at_the_limit() {
     let job = q.enqueue(&t, &s, None, "motion", "{}", 2).await.unwrap();
     let p = json!({"code": "storage_error", "detail": "disk full"});
     q.claim("w", 60_000).await.unwrap().unwrap();
-    assert_eq!(q.fail(&job.id, "w", &p, true, 200).await.unwrap(), "queued");
+    assert_eq!(
+        q.fail(&job.id, "w", &p, true, 200).await.unwrap(),
+        FailOutcome::Retried
+    );
     // Not due yet: the backoff holds it.
     assert!(q.claim("w", 60_000).await.unwrap().is_none());
     tokio::time::sleep(std::time::Duration::from_millis(250)).await;
     let again = q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(again.attempts, 2);
-    assert_eq!(q.fail(&job.id, "w", &p, true, 200).await.unwrap(), "failed");
+    assert_eq!(
+        q.fail(&job.id, "w", &p, true, 200).await.unwrap(),
+        FailOutcome::Failed
+    );
     let j = q.get(&job.id).await.unwrap().unwrap();
-    assert_eq!(j.status, "failed");
+    assert_eq!(j.status, JobStatus::Failed);
     assert!(j.error.unwrap().contains("disk full"));
     // Bad input: failed at once, whatever attempts remain.
     let job2 = q.enqueue(&t, &s, None, "motion", "{}", 5).await.unwrap();
     q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(
         q.fail(&job2.id, "w", &p, false, 200).await.unwrap(),
-        "failed"
+        FailOutcome::Failed
     );
 }
 
@@ -134,13 +140,13 @@ async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
     let queued = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
     assert_eq!(
         q.cancel(&t, &queued.id).await.unwrap().unwrap().status,
-        "cancelled"
+        JobStatus::Cancelled
     );
     let running = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
     q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(
         q.cancel(&t, &running.id).await.unwrap().unwrap().status,
-        "running"
+        JobStatus::Running
     );
     assert_eq!(
         q.heartbeat(&running.id, "w", 60_000).await.unwrap(),
@@ -158,10 +164,13 @@ async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
         .unwrap());
     assert_eq!(
         q.get(&running.id).await.unwrap().unwrap().status,
-        "cancelled"
+        JobStatus::Cancelled
     );
     // Another tenant cannot cancel.
     let other = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
     assert!(q.cancel("someone-else", &other.id).await.unwrap().is_none());
-    assert_eq!(q.get(&other.id).await.unwrap().unwrap().status, "queued");
+    assert_eq!(
+        q.get(&other.id).await.unwrap().unwrap().status,
+        JobStatus::Queued
+    );
 }

@@ -4,7 +4,7 @@ use super::auth::AuthTenant;
 use super::error::ApiError;
 use super::AppState;
 use crate::jobs::acceptance::{judge, Acceptance};
-use crate::jobs::queue::{JobFilter, JobRow, STATUSES};
+use crate::jobs::queue::{JobFilter, JobRow, JobStatus};
 use crate::jobs::JobOptions;
 use crate::store::Tenant;
 use crate::store::{now_ms, parse_rfc3339, rfc3339};
@@ -39,7 +39,7 @@ pub struct JobView {
     session_id: String,
     vehicle_id: Option<String>,
     method: String,
-    status: String,
+    status: JobStatus,
     stage: Option<String>,
     progress: f64,
     attempts: i64,
@@ -73,7 +73,7 @@ impl JobView {
             session_id: j.session_id.clone(),
             vehicle_id: j.vehicle_id.clone(),
             method: j.method.clone(),
-            status: j.status.clone(),
+            status: j.status,
             stage: j.stage.clone(),
             progress: j.progress,
             attempts: j.attempts,
@@ -232,14 +232,13 @@ fn parse_filter(raw: Option<&str>) -> Result<JobFilter, ApiError> {
             .field("query")
     })?;
     let bad = |field: &str, expected: String| ApiError::invalid(InputError::new(field, expected));
-    if let Some(s) = &q.status {
-        if !STATUSES.contains(&s.as_str()) {
-            return Err(bad(
-                "status",
-                format!("one of {}, got {s:?}", STATUSES.join(", ")),
-            ));
-        }
-    }
+    let status = match &q.status {
+        None => None,
+        Some(s) => Some(JobStatus::parse(s).ok_or_else(|| {
+            let known: Vec<&str> = JobStatus::ALL.iter().map(|s| s.as_str()).collect();
+            bad("status", format!("one of {}, got {s:?}", known.join(", ")))
+        })?),
+    };
     if let Some(m) = &q.method {
         if m != "motion" && m != "vanishing" {
             return Err(bad("method", format!("motion or vanishing, got {m:?}")));
@@ -275,7 +274,7 @@ fn parse_filter(raw: Option<&str>) -> Result<JobFilter, ApiError> {
         }
     };
     Ok(JobFilter {
-        status: q.status,
+        status,
         vehicle_id: q.vehicle_id,
         method: q.method,
         created_after: time("created_after", &q.created_after)?,
@@ -383,7 +382,7 @@ pub async fn events(
             let mut ended = false;
             for e in events {
                 last = e.id;
-                let terminal = e.kind == "status" && crate::jobs::queue::TERMINAL.contains(&e.status.as_str());
+                let terminal = e.kind == "status" && JobStatus::parse(&e.status).is_some_and(JobStatus::is_terminal);
                 let data = serde_json::to_string(&e).unwrap_or_default();
                 yield Ok(Event::default().id(e.id.to_string()).event(e.kind.clone()).data(data));
                 ended |= terminal;

@@ -2,7 +2,7 @@
 //! dashboard shows beside every job. Computed when read, not when the job ends, so a
 //! tenant that tightens its thresholds sees old jobs judged by the new ones.
 
-use super::queue::JobRow;
+use super::queue::{JobRow, JobStatus};
 use crate::store::Tenant;
 use rigcal_core::result::ResultDocument;
 use serde::Serialize;
@@ -49,13 +49,15 @@ pub fn judge(job: &JobRow, tenant: &Tenant) -> Acceptance {
         };
     }
     let mut reasons = Vec::new();
-    if job.status != "succeeded" {
+    if job.status != JobStatus::Succeeded {
         reasons.push(format!("the job ended {}", job.status));
     }
     let mut check = |name: &str, value: Option<f64>, max: f64, unit: &str| match value {
         Some(v) if v <= max => {}
         Some(v) => reasons.push(format!("{name} {v:.4} {unit} exceeds {max} {unit}")),
-        None if job.status == "succeeded" => reasons.push(format!("no {name} was computed")),
+        None if job.status == JobStatus::Succeeded => {
+            reasons.push(format!("no {name} was computed"))
+        }
         None => {}
     };
     check("residual RMS", job.residual_rms_px, tenant.max_rms_px, "px");
@@ -89,7 +91,7 @@ mod tests {
             vehicle_id: None,
             method: "motion".into(),
             options: "{}".into(),
-            status: status.into(),
+            status: JobStatus::parse(status).unwrap(),
             stage: None,
             progress: 1.0,
             attempts: 1,

@@ -8,19 +8,81 @@
 
 use super::acceptance::ResultSummary;
 use crate::store::{now_ms, rfc3339};
+use rigcal_core::result::Status;
 use serde::Serialize;
 use sqlx::sqlite::{SqlitePool, SqliteRow};
 use sqlx::Row;
 
-pub const TERMINAL: [&str; 4] = ["succeeded", "degraded", "failed", "cancelled"];
-pub const STATUSES: [&str; 6] = [
-    "queued",
-    "running",
-    "succeeded",
-    "degraded",
-    "failed",
-    "cancelled",
-];
+/// Where a job is; stored (and shown) as its snake_case name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, sqlx::Type)]
+#[serde(rename_all = "snake_case")]
+#[sqlx(rename_all = "snake_case")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Degraded,
+    Failed,
+    Cancelled,
+}
+
+impl JobStatus {
+    pub const ALL: [JobStatus; 6] = [
+        JobStatus::Queued,
+        JobStatus::Running,
+        JobStatus::Succeeded,
+        JobStatus::Degraded,
+        JobStatus::Failed,
+        JobStatus::Cancelled,
+    ];
+
+    pub const fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Degraded => "degraded",
+            JobStatus::Failed => "failed",
+            JobStatus::Cancelled => "cancelled",
+        }
+    }
+
+    pub fn parse(s: &str) -> Option<JobStatus> {
+        Self::ALL.into_iter().find(|x| x.as_str() == s)
+    }
+
+    pub const fn is_terminal(self) -> bool {
+        !matches!(self, JobStatus::Queued | JobStatus::Running)
+    }
+}
+
+impl From<Status> for JobStatus {
+    /// A finished calibration's status as the job's.
+    fn from(s: Status) -> JobStatus {
+        match s {
+            Status::Succeeded => JobStatus::Succeeded,
+            Status::Degraded => JobStatus::Degraded,
+            Status::Failed => JobStatus::Failed,
+        }
+    }
+}
+
+impl std::fmt::Display for JobStatus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+/// What [`Queue::fail`] did with the job.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FailOutcome {
+    /// Queued again for another attempt.
+    Retried,
+    /// Failed for good.
+    Failed,
+    /// This worker no longer held the job; nothing was written.
+    Lost,
+}
 
 #[derive(Clone, Debug)]
 pub struct JobRow {
@@ -30,7 +92,7 @@ pub struct JobRow {
     pub vehicle_id: Option<String>,
     pub method: String,
     pub options: String,
-    pub status: String,
+    pub status: JobStatus,
     pub stage: Option<String>,
     pub progress: f64,
     pub attempts: i64,
@@ -47,7 +109,7 @@ pub struct JobRow {
 
 impl JobRow {
     pub fn is_terminal(&self) -> bool {
-        TERMINAL.contains(&self.status.as_str())
+        self.status.is_terminal()
     }
 }
 
@@ -104,7 +166,7 @@ pub struct EventRow {
 
 #[derive(Clone, Debug, Default)]
 pub struct JobFilter {
-    pub status: Option<String>,
+    pub status: Option<JobStatus>,
     pub vehicle_id: Option<String>,
     pub method: Option<String>,
     pub created_after: Option<i64>,
@@ -201,7 +263,7 @@ impl Queue {
         const COUNT: &str = "SELECT COUNT(*) FROM jobs WHERE tenant_id = ?1 AND (?2 IS NULL OR status = ?2) AND (?3 IS NULL OR vehicle_id = ?3) AND (?4 IS NULL OR method = ?4) AND (?5 IS NULL OR created_at >= ?5) AND (?6 IS NULL OR created_at < ?6)";
         let rows = sqlx::query(ROWS)
             .bind(tenant_id)
-            .bind(&f.status)
+            .bind(f.status.map(JobStatus::as_str))
             .bind(&f.vehicle_id)
             .bind(&f.method)
             .bind(f.created_after)
@@ -212,7 +274,7 @@ impl Queue {
             .await?;
         let total: i64 = sqlx::query(COUNT)
             .bind(tenant_id)
-            .bind(&f.status)
+            .bind(f.status.map(JobStatus::as_str))
             .bind(&f.vehicle_id)
             .bind(&f.method)
             .bind(f.created_after)
@@ -314,7 +376,7 @@ impl Queue {
         &self,
         id: &str,
         worker: &str,
-        status: &str,
+        status: JobStatus,
         document: &str,
         summary: &ResultSummary,
         error: Option<&str>,
@@ -345,7 +407,7 @@ impl Queue {
         .bind(now)
         .execute(&mut *tx)
         .await?;
-        event(&mut *tx, id, "status", status, None, 1.0, None).await?;
+        event(&mut *tx, id, "status", status.as_str(), None, 1.0, None).await?;
         tx.commit().await?;
         Ok(true)
     }
@@ -359,7 +421,7 @@ impl Queue {
         problem: &serde_json::Value,
         transient: bool,
         backoff_ms: i64,
-    ) -> sqlx::Result<String> {
+    ) -> sqlx::Result<FailOutcome> {
         let now = now_ms();
         let mut tx = self.pool.begin().await?;
         // A write first (a no-op one) so the transaction holds the write lock before it
@@ -370,7 +432,7 @@ impl Queue {
             .fetch_optional(&mut *tx)
             .await?;
         let Some(r) = r else {
-            return Ok("lost".into());
+            return Ok(FailOutcome::Lost);
         };
         let (attempts, max): (i64, i64) = (r.get(0), r.get(1));
         let text = problem.to_string();
@@ -396,7 +458,7 @@ impl Queue {
                 )),
             )
             .await?;
-            "queued"
+            FailOutcome::Retried
         } else {
             sqlx::query("UPDATE jobs SET status = 'failed', stage = NULL, lease_owner = NULL, lease_expires_at = NULL, finished_at = ?, error = ? WHERE id = ?")
                 .bind(now)
@@ -414,10 +476,10 @@ impl Queue {
                 problem["detail"].as_str(),
             )
             .await?;
-            "failed"
+            FailOutcome::Failed
         };
         tx.commit().await?;
-        Ok(status.into())
+        Ok(status)
     }
 
     /// Request cancellation. A queued job is cancelled at once; a running one is marked
@@ -523,18 +585,21 @@ impl Queue {
         Ok(r.map(|r| r.get(0)))
     }
 
-    /// Jobs per status (all tenants), every status in [`STATUSES`] order, zeros
+    /// Jobs per status (all tenants), every status in [`JobStatus::ALL`] order, zeros
     /// included, for metrics.
     pub async fn counts(&self) -> sqlx::Result<Vec<(String, i64)>> {
         let rows = sqlx::query("SELECT status, COUNT(*) FROM jobs GROUP BY status")
             .fetch_all(&self.pool)
             .await?;
         let found: Vec<(String, i64)> = rows.iter().map(|r| (r.get(0), r.get(1))).collect();
-        Ok(STATUSES
+        Ok(JobStatus::ALL
             .iter()
             .map(|s| {
-                let n = found.iter().find(|(x, _)| x == s).map_or(0, |(_, n)| *n);
-                (s.to_string(), n)
+                let n = found
+                    .iter()
+                    .find(|(x, _)| x == s.as_str())
+                    .map_or(0, |(_, n)| *n);
+                (s.as_str().to_string(), n)
             })
             .collect())
     }

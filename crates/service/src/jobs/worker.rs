@@ -7,7 +7,7 @@
 //! Everything else (database or blob I/O, a panic in the engine) is treated as transient
 //! and retried with exponential backoff up to the job's attempt limit.
 
-use super::queue::{JobRow, Queue};
+use super::queue::{FailOutcome, JobRow, JobStatus, Queue};
 use super::JobOptions;
 use crate::store::blob::BlobStore;
 use crate::store::Store;
@@ -257,14 +257,12 @@ async fn run_job(
                 .unwrap_or_default();
             tracing::warn!(job = %job.id, "{message}");
             let p = problem("input_missing", message, None);
-            if let Ok(s) = queue.fail(&job.id, name, &p, true, backoff).await {
-                if s == "failed" {
-                    metrics.job_finished("failed");
-                }
+            if let Ok(FailOutcome::Failed) = queue.fail(&job.id, name, &p, true, backoff).await {
+                metrics.job_finished("failed");
             }
         }
         Ok(Ok(Ok(doc))) => {
-            let status = doc.status.as_str();
+            let status = JobStatus::from(doc.status);
             let text = match serde_json::to_string(&doc) {
                 Ok(t) => t,
                 Err(e) => {
@@ -288,8 +286,8 @@ async fn run_job(
                 .await
             {
                 Ok(true) => {
-                    metrics.job_finished(status);
-                    tracing::info!(job = %job.id, status, "finished");
+                    metrics.job_finished(status.as_str());
+                    tracing::info!(job = %job.id, status = status.as_str(), "finished");
                 }
                 Ok(false) => tracing::warn!(job = %job.id, "lease lost before completion"),
                 Err(e) => {
@@ -316,10 +314,8 @@ async fn run_job(
                 format!("the engine failed unexpectedly: {what}"),
                 None,
             );
-            if let Ok(s) = queue.fail(&job.id, name, &p, true, backoff).await {
-                if s == "failed" {
-                    metrics.job_finished("failed");
-                }
+            if let Ok(FailOutcome::Failed) = queue.fail(&job.id, name, &p, true, backoff).await {
+                metrics.job_finished("failed");
             }
         }
         Err(e) => {
