@@ -1,9 +1,10 @@
 #!/usr/bin/env bash
 # The test command of README.md: installs what the tests need on a fresh machine
 # (Debian's Chromium, Node.js and the browser test's npm packages, a Python venv for the
-# contract test), then runs every test: `cargo test --release --workspace` (unit, engine, service
+# contract test and the format checks), then runs every test: `cargo test --release --workspace` (unit, engine, service
 # over real HTTP, crash test, the dashboard in headless Chromium) and the HTTP contract
-# test (schemathesis against the live server). .ci/run calls this same script.
+# test (schemathesis against the live server) and the export format checks (PyYAML,
+# OpenCV, pycolmap in a venv). .ci/run calls this same script.
 #
 # Safe to run again: every install step is skipped when its result is already there.
 # RIGCAL_TEST_NO_INSTALL=1 skips the installs (for a machine set up by hand).
@@ -43,3 +44,5 @@ fi
 cargo test --release --workspace "$@"
 # The HTTP contract: openapi.yaml against the running server (built by the line above).
 bash scripts/contract.sh
+# The exports read back by the tools that consume them (Kalibr's rules, OpenCV, COLMAP).
+bash scripts/format_checks.sh

@@ -321,7 +321,7 @@ fn exports_quote_hostile_but_valid_ids() {
             .collect();
         for id in &names {
             assert!(
-                links.contains(&format!("{id}_optical").as_str()),
+                links.contains(&format!("{id}_optical_frame").as_str()),
                 "{links:?}"
             );
         }
@@ -445,4 +445,38 @@ fn the_initialisation_with_scene_permutation_stays_near_the_refined_result() {
             );
         }
     }
+}
+
+/// What a format cannot hold is refused, not dropped: radtan's `k3` has no place in
+/// Kalibr's four-coefficient radtan; COLMAP takes it as FULL_OPENCV.
+#[test]
+fn radtan_k3_is_refused_by_kalibr_and_kept_by_colmap() {
+    use rigcal_engine::export::{render, ExportError, Format};
+    let (mut manifest, _) = generate("lebraly-5.1", 1, 0.0).unwrap();
+    for c in &mut manifest.cameras {
+        c.model = "radtan".into();
+        c.distortion = vec![0.0, 0.0, 0.0, 0.0, 0.0];
+    }
+    let with_k3 = |k3: f64| {
+        let mut m = manifest.clone();
+        m.cameras[1].distortion[4] = k3;
+        let session = parse_session(&serde_json::to_vec(&m).unwrap()).unwrap();
+        let doc = calibrate(&session, &CalibOptions::default());
+        (
+            render(&doc, &session, Format::Kalibr),
+            render(&doc, &session, Format::Colmap),
+        )
+    };
+    let (kalibr, colmap) = with_k3(0.0);
+    assert!(kalibr.is_ok());
+    assert!(colmap.unwrap().contains("\"OPENCV\""));
+    let (kalibr, colmap) = with_k3(1e-3);
+    match kalibr {
+        Err(ExportError::Unrepresentable(why)) => assert!(why.contains("k3"), "{why}"),
+        other => panic!("k3 exported to Kalibr: {other:?}"),
+    }
+    let colmap: serde_json::Value = serde_json::from_str(&colmap.unwrap()).unwrap();
+    let cams = colmap[0]["cameras"].as_array().unwrap();
+    assert_eq!(cams[1]["camera_model_name"], "FULL_OPENCV");
+    assert_eq!(cams[1]["camera_params"][8], 1e-3);
 }

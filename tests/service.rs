@@ -88,6 +88,7 @@ async fn detections_to_result_matches_the_cli_and_history_shows_drift() {
         ("kalibr", "T_cn_cnm1"),
         ("opencv", "%YAML"),
         ("urdf", "<joint"),
+        ("colmap", "cam_from_rig_rotation"),
     ] {
         let r = c
             .get(s.url(&format!("/v1/jobs/{id}/result?format={fmt}")))

@@ -11,7 +11,7 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct Args {
     session: PathBuf,
-    /// json | kalibr | opencv | urdf
+    /// json | kalibr | opencv | urdf | colmap
     #[arg(long, default_value = "json")]
     format: Format,
     /// Robust loss of the outlier pass: huber | cauchy | squared

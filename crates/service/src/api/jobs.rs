@@ -490,7 +490,7 @@ struct ResultQuery {
     format: Option<String>,
 }
 
-/// `GET /v1/jobs/{id}/result[?format=json|kalibr|opencv|urdf]`.
+/// `GET /v1/jobs/{id}/result[?format=json|kalibr|opencv|urdf|colmap]`.
 pub async fn result(
     State(state): State<AppState>,
     AuthTenant(tenant): AuthTenant,
@@ -510,7 +510,7 @@ pub async fn result(
         Some(f) => f.parse().map_err(|_| {
             ApiError::invalid(InputError::new(
                 "format",
-                format!("one of json, kalibr, opencv, urdf, got {f:?}"),
+                format!("{}, got {f:?}", Format::expected()),
             ))
         })?,
     };
@@ -525,11 +525,8 @@ pub async fn result(
         .await?
         .ok_or_else(|| ApiError::internal("session of a job missing"))?;
     let session = parse_session(session.manifest.as_bytes()).map_err(ApiError::internal)?;
-    let (ct, ext) = match format {
-        Format::Urdf => ("application/xml", "urdf"),
-        _ => ("application/yaml", "yaml"),
-    };
-    let name = format!("{:?}", format).to_lowercase();
+    let (ct, ext) = format.media();
+    let name = format.as_str();
     match render(&doc, &session, format) {
         Ok(out) => Ok((
             [

@@ -552,7 +552,7 @@ async function renderJob(id, first = true) {
       h("dt", {}, "Attempts"), h("dd", {}, `${job.attempts} of ${job.max_attempts}`)));
   const parts = [head, failureBox(job, doc)];
   if (doc && doc.extrinsics.length) {
-    const dl = h("div", { class: "downloads" }, ["json", "kalibr", "opencv", "urdf"].map((f) => {
+    const dl = h("div", { class: "downloads" }, ["json", "kalibr", "opencv", "urdf", "colmap"].map((f) => {
       const b = h("button", { type: "button", class: "secondary", dataset: { format: f } }, `Download ${f === "json" ? "JSON" : f === "opencv" ? "OpenCV" : f === "urdf" ? "URDF" : "Kalibr"}`);
       b.addEventListener("click", () => download(id, f, b));
       return b;

@@ -1,0 +1,38 @@
+//! A ROS URDF snippet: one fixed joint per camera from the reference camera's optical
+//! frame (REP 103 optical-frame naming, `<id>_optical_frame`).
+
+use super::Rig;
+
+/// Text escaped for an XML attribute value in double quotes.
+fn xml_attr(s: &str) -> String {
+    let mut out = String::with_capacity(s.len());
+    for c in s.chars() {
+        match c {
+            '&' => out.push_str("&amp;"),
+            '<' => out.push_str("&lt;"),
+            '>' => out.push_str("&gt;"),
+            '"' => out.push_str("&quot;"),
+            '\'' => out.push_str("&apos;"),
+            c => out.push(c),
+        }
+    }
+    out
+}
+
+pub(super) fn render(rig: &Rig) -> String {
+    let reference = xml_attr(rig.reference);
+    // Ids stay out of the comment: `--` is not allowed inside one.
+    let mut out = format!("<!-- rigcal: joint origins are ref_from_cam (parent = the reference camera's optical frame,\n     child = the camera's optical frame, z forward, x right, y down). rpy is fixed-axis roll, pitch, yaw in radians. -->\n<robot name=\"rig\">\n  <link name=\"{reference}_optical_frame\"/>\n");
+    for (c, p) in rig.session.cameras.iter().zip(&rig.ref_from_cam) {
+        if c.id == rig.reference {
+            continue;
+        }
+        let (r, pi, y) = rigcal_core::geometry::so3::to_rpy(&p.rot);
+        out.push_str(&format!(
+            "  <link name=\"{1}_optical_frame\"/>\n  <joint name=\"{0}_to_{1}\" type=\"fixed\">\n    <parent link=\"{0}_optical_frame\"/>\n    <child link=\"{1}_optical_frame\"/>\n    <origin xyz=\"{2:?} {3:?} {4:?}\" rpy=\"{5:?} {6:?} {7:?}\"/>\n  </joint>\n",
+            reference, xml_attr(&c.id), p.trans.x, p.trans.y, p.trans.z, r, pi, y
+        ));
+    }
+    out.push_str("</robot>\n");
+    out
+}

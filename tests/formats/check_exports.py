@@ -1,0 +1,207 @@
+"""Round-trip of rigcal's exports through the parsers of the tools that read them.
+
+Format checks, not peers: PyYAML with the type rules of Kalibr's ConfigReader (camchain),
+cv2.FileStorage and cv2.stereoRectify (OpenCV), xml.etree with the URDF joint chain
+recomposed, pycolmap.read_rig_config (COLMAP >= 3.12). Every transform read back is
+composed and compared with the result document's ref_from_cam.
+
+usage: check_exports.py RIGCAL_BINARY WORKDIR
+"""
+import json
+import math
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import yaml
+
+PRESETS = ["lebraly-5.1", "car-planar", "car-bump", "wu-table2", "car-hall", "fisheye-handheld"]
+TOL = 1e-9
+
+
+def run(binary, *args):
+    return subprocess.run([binary, *args], capture_output=True, text=True)
+
+
+def fail(where, why):
+    raise SystemExit(f"FAIL {where}: {why}")
+
+
+def truth_of(result):
+    return {e["camera"]: np.array(e["ref_from_cam"]) for e in result["extrinsics"]}
+
+
+def close(where, got, want):
+    err = np.abs(np.asarray(got, float) - np.asarray(want, float)).max()
+    if not err <= TOL:
+        fail(where, f"transform differs from the result by {err:.3g}")
+
+
+def check_kalibr(where, text, cams, truth, session):
+    data = yaml.safe_load(text)  # PyYAML: YAML 1.1, what Kalibr reads with
+    if sorted(data) != sorted(f"cam{i}" for i in range(len(cams))):
+        fail(where, f"top-level keys {sorted(data)}")
+    ref_from = None
+    for i, cam_id in enumerate(cams):
+        c = data[f"cam{i}"]
+        if not isinstance(c["rostopic"], str):
+            fail(where, "rostopic has to be a string")
+        if c["camera_model"] != "pinhole":
+            fail(where, f"camera_model {c['camera_model']!r}")
+        k = c["intrinsics"]
+        if len(k) != 4 or not all(isinstance(x, float) for x in k) or k[0] < 0 or k[1] < 0:
+            fail(where, f"invalid focalLength (2 floats): {k!r}")
+        if k[2] < 0 or k[3] < 0:
+            fail(where, f"invalid principalPoint: {k!r}")
+        n = {"radtan": 4, "equidistant": 4, "fov": 1, "none": 0}.get(c["distortion_model"])
+        d = c["distortion_coeffs"]
+        if n is None or len(d) != n or not all(isinstance(x, float) for x in d):
+            fail(where, f"distortion {c['distortion_model']!r} {d!r}")
+        r = c["resolution"]
+        if len(r) != 2 or not all(type(x) is int for x in r):
+            fail(where, f"invalid resolution {r!r}")
+        if not all(type(j) is int and 0 <= j < len(cams) and j != i for j in c["cam_overlaps"]):
+            fail(where, f"cam_overlaps {c['cam_overlaps']!r}")
+        spec = session["cameras"][i]
+        if r != [spec["width"], spec["height"]]:
+            fail(where, f"resolution {r} vs {spec['width']}x{spec['height']}")
+        if i == 0:
+            ref_from = truth[cam_id]
+        else:
+            t = np.array(c["T_cn_cnm1"], dtype=float)
+            if t.shape != (4, 4) or not all(isinstance(x, float) for row in c["T_cn_cnm1"] for x in row):
+                fail(where, "T_cn_cnm1 is not a 4x4 float matrix")
+            ref_from = ref_from @ np.linalg.inv(t)
+        close(f"{where} cam{i} chain", ref_from, truth[cam_id])
+        close(f"{where} cam{i} T_ref_cam", c["T_ref_cam"], truth[cam_id])
+
+
+def check_opencv(where, path, cams, truth):
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    if not fs.isOpened():
+        fail(where, "cv2.FileStorage cannot open it")
+    read = {}
+    for cam_id in cams:
+        m = {k: fs.getNode(f"{cam_id}_{k}").mat() for k in ["K", "D", "size", "R", "T"]}
+        m["model"] = fs.getNode(f"{cam_id}_model").string()
+        if any(v is None for v in m.values()) or m["K"].shape != (3, 3) or m["R"].shape != (3, 3):
+            fail(where, f"{cam_id}: K, D, size, R, T, model not all read: {m}")
+        cam_from_ref = np.eye(4)
+        cam_from_ref[:3, :3], cam_from_ref[:3, 3] = m["R"], m["T"].ravel()
+        close(f"{where} {cam_id}", np.linalg.inv(cam_from_ref), truth[cam_id])
+        read[cam_id] = m
+    a, b = read[cams[0]], read[cams[1]]
+    r = b["R"] @ a["R"].T
+    t = b["T"] - r @ a["T"]
+    size = tuple(int(x) for x in a["size"].ravel())
+    if a["model"] == b["model"] == "pinhole":
+        out = cv2.stereoRectify(a["K"], a["D"], b["K"], b["D"], size, r, t)
+    elif a["model"] == b["model"] == "fisheye":
+        out = cv2.fisheye.stereoRectify(a["K"], a["D"], b["K"], b["D"], size, r, t, flags=0)
+    else:
+        return
+    if not all(np.isfinite(x).all() for x in out[:5]):
+        fail(where, "stereoRectify gave non-finite matrices")
+
+
+def rpy_matrix(r, p, y):
+    cr, sr, cp, sp, cy, sy = math.cos(r), math.sin(r), math.cos(p), math.sin(p), math.cos(y), math.sin(y)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return rz @ ry @ rx
+
+
+def check_urdf(where, text, cams, ref, truth):
+    root = ET.fromstring(text)
+    links = {l.get("name") for l in root.iter("link")}
+    if links != {f"{c}_optical_frame" for c in cams}:
+        fail(where, f"links {sorted(links)}")
+    for j in root.iter("joint"):
+        if j.find("parent").get("link") != f"{ref}_optical_frame":
+            fail(where, "a joint whose parent is not the reference camera")
+        child = j.find("child").get("link").removesuffix("_optical_frame")
+        o = j.find("origin")
+        m = np.eye(4)
+        m[:3, :3] = rpy_matrix(*map(float, o.get("rpy").split()))
+        m[:3, 3] = list(map(float, o.get("xyz").split()))
+        # rpy round-trips to ~1e-12 only; the translation is exact.
+        err = np.abs(m - truth[child]).max()
+        if not err <= 1e-9:
+            fail(where, f"{child}: joint differs from the result by {err:.3g}")
+
+
+def check_colmap(where, path, cams, ref, truth):
+    rigs = pycolmap.read_rig_config(str(path))
+    if len(rigs) != 1 or len(rigs[0].cameras) != len(cams):
+        fail(where, f"{len(rigs)} rigs")
+    for cam_id, rc in zip(cams, rigs[0].cameras):
+        if rc.image_prefix != f"{cam_id}/":
+            fail(where, f"image_prefix {rc.image_prefix!r}")
+        if rc.ref_sensor != (cam_id == ref):
+            fail(where, f"{cam_id}: ref_sensor {rc.ref_sensor}")
+        if cam_id != ref:
+            m = np.eye(4)
+            m[:3, :] = rc.cam_from_rig.matrix()
+            close(f"{where} {cam_id}", np.linalg.inv(m), truth[cam_id])
+        if rc.camera is None:
+            fail(where, f"{cam_id}: camera model not read")
+
+
+def check_session(binary, where, session_path, refused=()):
+    result = json.loads(run(binary, "calibrate", str(session_path)).stdout)
+    if not result.get("extrinsics"):
+        print(f"skip {where}: {result.get('status')}")
+        return
+    session = json.loads(Path(session_path).read_text())
+    cams = [c["id"] for c in session["cameras"]]
+    ref = result["reference_camera"]
+    truth = truth_of(result)
+    out = Path(session_path).parent
+    for fmt in ["kalibr", "opencv", "urdf", "colmap"]:
+        p = run(binary, "calibrate", str(session_path), "--format", fmt)
+        if fmt in refused:
+            if p.returncode == 0 or "--format" not in p.stderr:
+                fail(f"{where} {fmt}", f"expected a refusal naming --format, got {p.returncode} {p.stderr!r}")
+            continue
+        if p.returncode not in (0, 3):
+            fail(f"{where} {fmt}", p.stderr)
+        path = out / f"export.{fmt}"
+        path.write_text(p.stdout)
+        if fmt == "kalibr":
+            check_kalibr(f"{where} kalibr", p.stdout, cams, truth, session)
+        elif fmt == "opencv":
+            check_opencv(f"{where} opencv", path, cams, truth)
+        elif fmt == "urdf":
+            check_urdf(f"{where} urdf", p.stdout, cams, ref, truth)
+        else:
+            check_colmap(f"{where} colmap", path, cams, ref, truth)
+    print(f"ok {where}: {len(cams)} cameras")
+
+
+def main():
+    binary, work = sys.argv[1], Path(sys.argv[2])
+    for preset in PRESETS:
+        d = work / preset
+        subprocess.run([binary, "synth", "--preset", preset, "--seed", "5", "--noise", "0.3", "--out", str(d)], check=True, capture_output=True)
+        check_session(binary, preset, d / "session.json")
+    # Awkward but valid ids: YAML keywords and numbers, XML comment breakers, dots.
+    base = json.loads((work / "lebraly-5.1" / "session.json").read_text())
+    ids = [c["id"] for c in base["cameras"]]
+    for names, refused in [(["yes", "null"], ()), (["a--b", "No"], ()), (["1e5", "a.b_c-d"], ("opencv",))]:
+        text = json.dumps(base)
+        for old, new in zip(ids, names):
+            text = text.replace(f'"{old}"', f'"{new}"')
+        d = work / ("ids-" + "-".join(names))
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "session.json").write_text(text)
+        check_session(binary, f"ids {names}", d / "session.json", refused)
+    print("format checks passed")
+
+
+if __name__ == "__main__":
+    main()
