@@ -89,6 +89,7 @@ async fn detections_to_result_matches_the_cli_and_history_shows_drift() {
         ("opencv", "%YAML"),
         ("urdf", "<joint"),
         ("colmap", "cam_from_rig_rotation"),
+        ("ros2", "static_transform_publisher"),
     ] {
         let r = c
             .get(s.url(&format!("/v1/jobs/{id}/result?format={fmt}")))
@@ -99,6 +100,36 @@ async fn detections_to_result_matches_the_cli_and_history_shows_drift() {
         let body = r.text().await.unwrap();
         assert!(body.contains(needle), "{fmt}: {body}");
     }
+    // The per-camera export names its camera, and only it takes one.
+    let p = expect_problem(
+        c.get(s.url(&format!("/v1/jobs/{id}/result?format=camera_info")))
+            .send()
+            .await
+            .unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "camera", "{p}");
+    let p = expect_problem(
+        c.get(s.url(&format!("/v1/jobs/{id}/result?format=kalibr&camera=cam1")))
+            .send()
+            .await
+            .unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "camera", "{p}");
+    let r = c
+        .get(s.url(&format!(
+            "/v1/jobs/{id}/result?format=camera_info&camera=cam1"
+        )))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    assert!(r.text().await.unwrap().contains("camera_name: \"cam1\""));
     let diag: Value = c
         .get(s.url(&format!("/v1/jobs/{id}/diagnostics")))
         .send()

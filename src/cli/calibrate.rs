@@ -2,7 +2,7 @@
 
 use anyhow::{anyhow, Context, Result};
 use rigcal_core::session::parse_session;
-use rigcal_engine::export::{render, ExportError, Format};
+use rigcal_engine::export::{render_for, ExportError, Format};
 use rigcal_engine::pipeline::{run as run_pipeline, CalibOptions, DirSource, LossKind, Silent};
 use std::path::PathBuf;
 
@@ -11,9 +11,12 @@ use std::path::PathBuf;
 #[derive(clap::Args)]
 pub struct Args {
     session: PathBuf,
-    /// json | kalibr | opencv | urdf | colmap
+    /// json | kalibr | opencv | urdf | colmap | ros2 | camera_info
     #[arg(long, default_value = "json")]
     format: Format,
+    /// The camera of `--format camera_info`.
+    #[arg(long)]
+    camera: Option<String>,
     /// Robust loss of the outlier pass: huber | cauchy | squared
     #[arg(long, default_value = "huber")]
     loss: LossKind,
@@ -36,13 +39,14 @@ pub fn run(a: Args) -> Result<i32> {
         .unwrap_or_default();
     let doc = run_pipeline(&session, &DirSource(dir), &opts, &Silent)
         .map_err(|c| anyhow!("cancelled at {}", c.0))?;
-    match render(&doc, &session, a.format) {
+    match render_for(&doc, &session, a.format, a.camera.as_deref()) {
         Ok(text) => println!("{text}"),
         Err(ExportError::NothingToExport) => {
             println!("{}", serde_json::to_string_pretty(&doc)?);
             eprintln!("error: nothing to export: the calibration {:?}", doc.status);
         }
         Err(ExportError::Unrepresentable(why)) => return Err(anyhow!("--format: {why}")),
+        Err(ExportError::Camera(why)) => return Err(anyhow!("--camera: {why}")),
     }
     Ok(doc.exit_code())
 }

@@ -170,6 +170,16 @@ try {
     assert.equal(fs.readFileSync(file, "utf8"), want, `${format} download equals the API export`);
     log(`downloaded ${dl.suggestedFilename()} (${want.length} bytes)`);
   }
+  {
+    const b = page.locator("button[data-format=camera_info]").first();
+    const camera = await b.getAttribute("data-camera");
+    const [dl] = await Promise.all([page.waitForEvent("download"), b.click()]);
+    const file = path.join(shots, dl.suggestedFilename());
+    await dl.saveAs(file);
+    const want = await apiText(cfg.base, cfg.key, `/v1/jobs/${jobId}/result?format=camera_info&camera=${encodeURIComponent(camera)}`);
+    assert.equal(fs.readFileSync(file, "utf8"), want, "camera_info download equals the API export");
+    assert.match(want, new RegExp(`camera_name: "${camera}"`));
+  }
   await shot(page, "04-job");
   await accessible(page, "job page");
 

@@ -1,8 +1,9 @@
 """Round-trip of rigcal's exports through the parsers of the tools that read them.
 
 Format checks, not peers: PyYAML with the type rules of Kalibr's ConfigReader (camchain),
-cv2.FileStorage and cv2.stereoRectify (OpenCV), xml.etree with the URDF joint chain
-recomposed, pycolmap.read_rig_config (COLMAP >= 3.12). Every transform read back is
+cv2.FileStorage and cv2.stereoRectify (OpenCV), xml.etree with the URDF joint chain and the
+ROS 2 static transforms recomposed, PyYAML with camera_calibration_parsers' field names
+(camera_info), pycolmap.read_rig_config (COLMAP >= 3.12). Every transform read back is
 composed and compared with the result document's ref_from_cam.
 
 usage: check_exports.py RIGCAL_BINARY WORKDIR
@@ -152,6 +153,61 @@ def check_colmap(where, path, cams, ref, truth):
             fail(where, f"{cam_id}: camera model not read")
 
 
+def quat_matrix(x, y, z, w):
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def check_ros2(where, text, cams, ref, truth):
+    root = ET.fromstring(text)
+    nodes = list(root.iter("node"))
+    if len(nodes) != len(cams) - 1:
+        fail(where, f"{len(nodes)} static_transform_publisher nodes for {len(cams)} cameras")
+    for n in nodes:
+        if (n.get("pkg"), n.get("exec")) != ("tf2_ros", "static_transform_publisher"):
+            fail(where, f"node {n.attrib}")
+        a = n.get("args").split()
+        kv = dict(zip(a[::2], a[1::2]))
+        if kv["--frame-id"] != f"{ref}_optical_frame":
+            fail(where, f"parent {kv['--frame-id']}")
+        child = kv["--child-frame-id"].removesuffix("_optical_frame")
+        m = np.eye(4)
+        q = [float(kv[k]) for k in ["--qx", "--qy", "--qz", "--qw"]]
+        if abs(np.linalg.norm(q) - 1) > 1e-12:
+            fail(where, f"quaternion norm {np.linalg.norm(q)}")
+        m[:3, :3] = quat_matrix(*q)
+        m[:3, 3] = [float(kv[k]) for k in ["--x", "--y", "--z"]]
+        close(f"{where} {child}", m, truth[child])
+
+
+def check_camera_info(where, text, spec):
+    info = yaml.safe_load(text)
+    need = ["image_width", "image_height", "camera_name", "camera_matrix", "distortion_model",
+            "distortion_coefficients", "rectification_matrix", "projection_matrix"]
+    if sorted(info) != sorted(need):
+        fail(where, f"fields {sorted(info)}")
+    if (info["image_width"], info["image_height"]) != (spec["width"], spec["height"]):
+        fail(where, "image size")
+    if info["camera_name"] != spec["id"]:
+        fail(where, f"camera_name {info['camera_name']!r}")
+    for name, (r, c) in [("camera_matrix", (3, 3)), ("rectification_matrix", (3, 3)), ("projection_matrix", (3, 4))]:
+        m = info[name]
+        if (m["rows"], m["cols"]) != (r, c) or len(m["data"]) != r * c or not all(isinstance(x, float) for x in m["data"]):
+            fail(where, f"{name} {m}")
+    k = spec["intrinsics"]
+    # (to an ulp: the session's pixel convention is converted on the way in and out)
+    want = [k["fx"], 0.0, k["cx"], 0.0, k["fy"], k["cy"], 0.0, 0.0, 1.0]
+    if not np.allclose(info["camera_matrix"]["data"], want, rtol=1e-12, atol=0):
+        fail(where, "camera_matrix is not the session's intrinsics")
+    n = {"plumb_bob": 5, "equidistant": 4}.get(info["distortion_model"])
+    d = info["distortion_coefficients"]
+    if n is None or d["cols"] != n or len(d["data"]) != n:
+        fail(where, f"distortion {info['distortion_model']} {d}")
+
+
 def check_session(binary, where, session_path, refused=()):
     result = json.loads(run(binary, "calibrate", str(session_path)).stdout)
     if not result.get("extrinsics"):
@@ -162,7 +218,7 @@ def check_session(binary, where, session_path, refused=()):
     ref = result["reference_camera"]
     truth = truth_of(result)
     out = Path(session_path).parent
-    for fmt in ["kalibr", "opencv", "urdf", "colmap"]:
+    for fmt in ["kalibr", "opencv", "urdf", "colmap", "ros2"]:
         p = run(binary, "calibrate", str(session_path), "--format", fmt)
         if fmt in refused:
             if p.returncode == 0 or "--format" not in p.stderr:
@@ -178,8 +234,18 @@ def check_session(binary, where, session_path, refused=()):
             check_opencv(f"{where} opencv", path, cams, truth)
         elif fmt == "urdf":
             check_urdf(f"{where} urdf", p.stdout, cams, ref, truth)
+        elif fmt == "ros2":
+            check_ros2(f"{where} ros2", p.stdout, cams, ref, truth)
         else:
             check_colmap(f"{where} colmap", path, cams, ref, truth)
+    for spec in session["cameras"]:
+        p = run(binary, "calibrate", str(session_path), "--format", "camera_info", "--camera", spec["id"])
+        if p.returncode not in (0, 3):
+            fail(f"{where} camera_info {spec['id']}", p.stderr)
+        check_camera_info(f"{where} camera_info {spec['id']}", p.stdout, spec)
+    p = run(binary, "calibrate", str(session_path), "--format", "camera_info")
+    if p.returncode == 0 or "--camera" not in p.stderr:
+        fail(f"{where} camera_info", f"without --camera: expected a refusal naming --camera, got {p.stderr!r}")
     print(f"ok {where}: {len(cams)} cameras")
 
 

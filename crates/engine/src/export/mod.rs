@@ -1,5 +1,6 @@
 //! Exports of a result document in the formats other tools read: Kalibr camchain YAML,
-//! OpenCV FileStorage YAML, a ROS URDF snippet and a COLMAP (≥ 3.12) `rig_config.json`.
+//! OpenCV FileStorage YAML, a ROS URDF snippet, ROS 2 (a tf2 static-transform launch file
+//! and per-camera `camera_info`) and a COLMAP (≥ 3.12) `rig_config.json`.
 //! One file per format; each states its frame convention in the file it writes, because
 //! the directions differ.
 //!
@@ -12,6 +13,7 @@
 mod colmap;
 mod kalibr;
 mod opencv;
+mod ros2;
 mod urdf;
 
 use rigcal_core::geometry::Pose;
@@ -26,15 +28,22 @@ pub enum Format {
     Opencv,
     Urdf,
     Colmap,
+    /// ROS 2 launch file of tf2 static transforms.
+    Ros2,
+    /// One camera's `sensor_msgs/CameraInfo` YAML (needs the camera).
+    #[serde(rename = "camera_info")]
+    CameraInfo,
 }
 
 impl Format {
-    pub const ALL: [Format; 5] = [
+    pub const ALL: [Format; 7] = [
         Format::Json,
         Format::Kalibr,
         Format::Opencv,
         Format::Urdf,
         Format::Colmap,
+        Format::Ros2,
+        Format::CameraInfo,
     ];
 
     pub const fn as_str(self) -> &'static str {
@@ -44,6 +53,8 @@ impl Format {
             Format::Opencv => "opencv",
             Format::Urdf => "urdf",
             Format::Colmap => "colmap",
+            Format::Ros2 => "ros2",
+            Format::CameraInfo => "camera_info",
         }
     }
 
@@ -52,7 +63,8 @@ impl Format {
         match self {
             Format::Json | Format::Colmap => ("application/json", "json"),
             Format::Urdf => ("application/xml", "urdf"),
-            Format::Kalibr | Format::Opencv => ("application/yaml", "yaml"),
+            Format::Ros2 => ("application/xml", "launch.xml"),
+            Format::Kalibr | Format::Opencv | Format::CameraInfo => ("application/yaml", "yaml"),
         }
     }
 
@@ -80,6 +92,8 @@ pub enum ExportError {
     NothingToExport,
     /// What the format cannot hold, with the reason.
     Unrepresentable(String),
+    /// The camera of a per-camera format is missing, unknown, or given to a rig format.
+    Camera(String),
 }
 
 /// Render `doc` in `format`.
@@ -88,6 +102,31 @@ pub fn render(
     session: &Session,
     format: Format,
 ) -> Result<String, ExportError> {
+    render_for(doc, session, format, None)
+}
+
+/// Render `doc` in `format`; `camera` names the camera of the per-camera formats
+/// (`camera_info`) and must be absent for the others.
+pub fn render_for(
+    doc: &ResultDocument,
+    session: &Session,
+    format: Format,
+    camera: Option<&str>,
+) -> Result<String, ExportError> {
+    if camera.is_some() != (format == Format::CameraInfo) {
+        return Err(ExportError::Camera(if camera.is_some() {
+            format!(
+                "camera: only for format camera_info, not {}",
+                format.as_str()
+            )
+        } else {
+            let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+            format!(
+                "camera_info describes one camera: one of {}",
+                ids.join(", ")
+            )
+        }));
+    }
     if format == Format::Json {
         return serde_json::to_string_pretty(doc)
             .map_err(|e| ExportError::Unrepresentable(e.to_string()));
@@ -101,6 +140,8 @@ pub fn render(
         Format::Opencv => opencv::render(&rig),
         Format::Urdf => Ok(urdf::render(&rig)),
         Format::Colmap => colmap::render(&rig),
+        Format::Ros2 => Ok(ros2::launch(&rig)),
+        Format::CameraInfo => ros2::camera_info(&rig, camera.unwrap_or_default()),
         Format::Json => unreachable!("handled above"),
     }
 }

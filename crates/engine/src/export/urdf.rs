@@ -4,7 +4,7 @@
 use super::Rig;
 
 /// Text escaped for an XML attribute value in double quotes.
-fn xml_attr(s: &str) -> String {
+pub(super) fn xml_attr(s: &str) -> String {
     let mut out = String::with_capacity(s.len());
     for c in s.chars() {
         match c {

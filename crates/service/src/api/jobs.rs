@@ -18,7 +18,7 @@ use futures::Stream;
 use rigcal_core::result::ResultDocument;
 use rigcal_core::session::undetected_images;
 use rigcal_core::session::{parse_session, InputError};
-use rigcal_engine::export::{render, ExportError, Format};
+use rigcal_engine::export::{render_for, ExportError, Format};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::convert::Infallible;
@@ -488,9 +488,10 @@ pub(super) async fn document(
 #[serde(deny_unknown_fields)]
 struct ResultQuery {
     format: Option<String>,
+    camera: Option<String>,
 }
 
-/// `GET /v1/jobs/{id}/result[?format=json|kalibr|opencv|urdf|colmap]`.
+/// `GET /v1/jobs/{id}/result[?format=json|kalibr|opencv|urdf|colmap|ros2|camera_info[&camera=ID]]`.
 pub async fn result(
     State(state): State<AppState>,
     AuthTenant(tenant): AuthTenant,
@@ -501,7 +502,7 @@ pub async fn result(
         ApiError::new(
             StatusCode::BAD_REQUEST,
             "invalid-query",
-            format!("query: {e}; known parameter: format"),
+            format!("query: {e}; known parameters: format, camera"),
         )
         .field("query")
     })?;
@@ -515,7 +516,7 @@ pub async fn result(
         })?,
     };
     let (job, text) = document(&state, &tenant.id, &id).await?;
-    if format == Format::Json {
+    if format == Format::Json && q.camera.is_none() {
         return Ok(([(header::CONTENT_TYPE, "application/json")], text).into_response());
     }
     let doc: ResultDocument = serde_json::from_str(&text).map_err(ApiError::internal)?;
@@ -527,13 +528,17 @@ pub async fn result(
     let session = parse_session(session.manifest.as_bytes()).map_err(ApiError::internal)?;
     let (ct, ext) = format.media();
     let name = format.as_str();
-    match render(&doc, &session, format) {
+    match render_for(&doc, &session, format, q.camera.as_deref()) {
         Ok(out) => Ok((
             [
                 (header::CONTENT_TYPE, ct.to_string()),
                 (
                     header::CONTENT_DISPOSITION,
-                    format!("attachment; filename=\"rigcal-{}-{name}.{ext}\"", &job.id),
+                    format!(
+                        "attachment; filename=\"rigcal-{}-{name}{}.{ext}\"",
+                        &job.id,
+                        q.camera.as_deref().map_or(String::new(), |c| format!("-{c}"))
+                    ),
                 ),
             ],
             out,
@@ -550,6 +555,7 @@ pub async fn result(
             format!("format {name}: {why}"),
         )
         .field("format")),
+        Err(ExportError::Camera(why)) => Err(ApiError::invalid(InputError::new("camera", why))),
     }
 }
 

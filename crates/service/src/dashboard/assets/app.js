@@ -482,10 +482,11 @@ function figure(jobId, name, label, wide) {
   return box;
 }
 
-async function download(jobId, format, button) {
+async function download(jobId, format, button, camera) {
   button.disabled = true;
   try {
-    const resp = await api(`/v1/jobs/${encodeURIComponent(jobId)}/result?format=${format}`, { raw: true });
+    const cam = camera ? `&camera=${encodeURIComponent(camera)}` : "";
+    const resp = await api(`/v1/jobs/${encodeURIComponent(jobId)}/result?format=${format}${cam}`, { raw: true });
     const blob = await resp.blob();
     const cd = resp.headers.get("content-disposition") || "";
     const m = cd.match(/filename="([^"]+)"/);
@@ -552,11 +553,15 @@ async function renderJob(id, first = true) {
       h("dt", {}, "Attempts"), h("dd", {}, `${job.attempts} of ${job.max_attempts}`)));
   const parts = [head, failureBox(job, doc)];
   if (doc && doc.extrinsics.length) {
-    const dl = h("div", { class: "downloads" }, ["json", "kalibr", "opencv", "urdf", "colmap"].map((f) => {
-      const b = h("button", { type: "button", class: "secondary", dataset: { format: f } }, `Download ${f === "json" ? "JSON" : f === "opencv" ? "OpenCV" : f === "urdf" ? "URDF" : "Kalibr"}`);
-      b.addEventListener("click", () => download(id, f, b));
+    const labels = { json: "JSON", kalibr: "Kalibr", opencv: "OpenCV", urdf: "URDF", colmap: "COLMAP rig", ros2: "ROS 2 tf" };
+    const button = (f, label, camera) => {
+      const b = h("button", { type: "button", class: "secondary", dataset: camera ? { format: f, camera } : { format: f } }, `Download ${label}`);
+      b.addEventListener("click", () => download(id, f, b, camera));
       return b;
-    }));
+    };
+    const dl = h("div", { class: "downloads" },
+      ...Object.entries(labels).map(([f, label]) => button(f, label)),
+      ...doc.extrinsics.map((e) => button("camera_info", `camera_info ${e.camera}`, e.camera)));
     parts.push(h("h2", {}, `Extrinsics relative to ${doc.reference_camera}`), extrinsicsTable(doc), dl);
   }
   if (doc) {
