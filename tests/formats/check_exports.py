@@ -20,7 +20,7 @@ import numpy as np
 import pycolmap
 import yaml
 
-PRESETS = ["lebraly-5.1", "car-planar", "car-bump", "wu-table2", "car-hall", "fisheye-handheld"]
+PRESETS = ["lebraly-5.1", "car-planar-uturn", "car-planar", "car-planar-loop", "car-bump", "pure-translation", "single-axis", "wu-table2", "car-hall", "car-hall-planar", "car-hall-isolated", "fisheye-handheld"]
 TOL = 1e-9
 
 
@@ -210,8 +210,13 @@ def check_camera_info(where, text, spec):
 
 def check_session(binary, where, session_path, refused=()):
     result = json.loads(run(binary, "calibrate", str(session_path)).stdout)
-    if not result.get("extrinsics"):
-        print(f"skip {where}: {result.get('status')}")
+    if result["status"] == "failed":
+        # A failed calibration never leaves as a file another tool loads as one.
+        for fmt in ["kalibr", "opencv", "urdf", "colmap", "ros2"]:
+            p = run(binary, "calibrate", str(session_path), "--format", fmt)
+            if "nothing to export" not in p.stderr or json.loads(p.stdout)["status"] != "failed":
+                fail(f"{where} {fmt}", f"a failed calibration was exported: {p.stdout[:200]!r}")
+        print(f"ok {where}: failed, exported as JSON only")
         return
     session = json.loads(Path(session_path).read_text())
     cams = [c["id"] for c in session["cameras"]]

@@ -88,7 +88,7 @@ impl std::str::FromStr for Format {
 /// Why a document was not exported.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum ExportError {
-    /// The calibration gave no extrinsics.
+    /// The calibration gave no extrinsics, or failed.
     NothingToExport,
     /// What the format cannot hold, with the reason.
     Unrepresentable(String),
@@ -131,7 +131,9 @@ pub fn render_for(
         return serde_json::to_string_pretty(doc)
             .map_err(|e| ExportError::Unrepresentable(e.to_string()));
     }
-    if doc.extrinsics.is_empty() {
+    // A failed calibration's numbers never leave as a file another tool would load as a
+    // calibration; its JSON document says why it failed.
+    if doc.extrinsics.is_empty() || doc.status == rigcal_core::result::Status::Failed {
         return Err(ExportError::NothingToExport);
     }
     let rig = Rig::of(doc, session)?;

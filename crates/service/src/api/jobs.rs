@@ -547,7 +547,7 @@ pub async fn result(
         Err(ExportError::NothingToExport) => Err(ApiError::new(
             StatusCode::CONFLICT,
             "nothing-to-export",
-            format!("the calibration {} and has no extrinsics to export; see the JSON result for the reasons", doc.status.as_str()),
+            format!("the calibration {}: nothing to export (a failed calibration is exported as its JSON result only, which says why)", doc.status.as_str()),
         )),
         Err(ExportError::Unrepresentable(why)) => Err(ApiError::new(
             StatusCode::UNPROCESSABLE_ENTITY,

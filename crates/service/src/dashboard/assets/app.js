@@ -559,9 +559,11 @@ async function renderJob(id, first = true) {
       b.addEventListener("click", () => download(id, f, b, camera));
       return b;
     };
+    // A failed calibration is downloadable as its JSON result only (the API refuses the rest).
+    const failed = doc.status === "failed";
     const dl = h("div", { class: "downloads" },
-      ...Object.entries(labels).map(([f, label]) => button(f, label)),
-      ...doc.extrinsics.map((e) => button("camera_info", `camera_info ${e.camera}`, e.camera)));
+      ...Object.entries(labels).filter(([f]) => !failed || f === "json").map(([f, label]) => button(f, label)),
+      ...(failed ? [] : doc.extrinsics.map((e) => button("camera_info", `camera_info ${e.camera}`, e.camera))));
     parts.push(h("h2", {}, `Extrinsics relative to ${doc.reference_camera}`), extrinsicsTable(doc), dl);
   }
   if (doc) {
