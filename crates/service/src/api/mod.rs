@@ -6,6 +6,7 @@ pub mod auth;
 pub mod error;
 mod events;
 mod figures;
+mod idempotency;
 mod jobs;
 mod listen;
 mod ops;
@@ -129,10 +130,14 @@ pub fn build_app(state: AppState) -> Router {
     // Uploads are bounded by the body timeout (a slow link that keeps sending passes),
     // event streams by nothing but the client and shutdown; everything else answers
     // within the request timeout.
+    // Inside each route's body limit, so a replayed body is held to it too.
+    let idempotent = middleware::from_fn_with_state(state.clone(), idempotency::idempotent);
     let uploads = Router::new()
         .route(
             "/sessions",
-            post(sessions::create).layer(body_limit(cfg.max_archive_bytes)),
+            post(sessions::create)
+                .layer::<_, std::convert::Infallible>(idempotent.clone())
+                .layer(body_limit(cfg.max_archive_bytes)),
         )
         .route(
             "/sessions/{id}/images/{camera}/{frame}",
@@ -140,7 +145,9 @@ pub fn build_app(state: AppState) -> Router {
         )
         .route(
             "/sessions/{id}/archive",
-            post(sessions::archive).layer(body_limit(cfg.max_archive_bytes)),
+            post(sessions::archive)
+                .layer::<_, std::convert::Infallible>(idempotent.clone())
+                .layer(body_limit(cfg.max_archive_bytes)),
         );
     let streams = Router::new()
         .route("/events", get(jobs::tenant_events))
@@ -151,6 +158,7 @@ pub fn build_app(state: AppState) -> Router {
         .route(
             "/jobs",
             post(jobs::create)
+                .layer::<_, std::convert::Infallible>(idempotent)
                 .layer(body_limit(cfg.max_manifest_bytes))
                 .get(jobs::list),
         )

@@ -6,6 +6,7 @@
 //! every query against a real database.
 
 pub mod blob;
+pub mod idempotency;
 
 use anyhow::Context;
 pub use blob::BlobStore;
