@@ -915,3 +915,67 @@ async fn a_vanishing_ring_calibrates_through_the_service_and_ring_images_are_slo
         doc["vanishing"]
     );
 }
+
+/// A tenant reads and sets its acceptance thresholds; jobs are judged by the current
+/// ones when read, so tightening them turns an old pass into a fail at once.
+#[tokio::test]
+async fn thresholds_are_set_over_the_api_and_rejudge_old_jobs() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&api_key(dir.path(), "line-3"));
+    let sid = create_session(&c, &s, &synth_session("lebraly-5.1", 2, 0.3, "car-9")).await;
+    let job = submit(&c, &s, sid["id"].as_str().unwrap()).await;
+    let id = job["id"].as_str().unwrap();
+    let done = wait_job(&c, &s, id, Duration::from_secs(60)).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let defaults = get_json(&c, &s, "/v1/tenant/thresholds").await;
+    assert_eq!(defaults["max_rms_px"], 1.0);
+
+    let put = |body: Value| c.put(s.url("/v1/tenant/thresholds")).json(&body).send();
+    let loose =
+        json!({"max_rms_px": 1.0, "max_sigma_translation_m": 0.05, "max_sigma_rotation_deg": 1.0});
+    assert_eq!(put(loose).await.unwrap().status().as_u16(), 200);
+    let judged = get_json(&c, &s, &format!("/v1/jobs/{id}")).await;
+    assert_eq!(judged["acceptance"]["pass"], true, "{judged}");
+    let tight =
+        json!({"max_rms_px": 0.01, "max_sigma_translation_m": 0.05, "max_sigma_rotation_deg": 1.0});
+    let r = put(tight.clone()).await.unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    assert_eq!(get_json(&c, &s, "/v1/tenant/thresholds").await, tight);
+    assert_eq!(
+        get_json(&c, &s, "/v1/tenant").await["acceptance_thresholds"],
+        tight
+    );
+    let judged = get_json(&c, &s, &format!("/v1/jobs/{id}")).await;
+    assert_eq!(judged["acceptance"]["pass"], false, "{judged}");
+
+    // Bad values name their field and change nothing.
+    for (body, field) in [
+        (
+            json!({"max_rms_px": -1.0, "max_sigma_translation_m": 0.005, "max_sigma_rotation_deg": 0.1}),
+            "max_rms_px",
+        ),
+        (
+            json!({"max_rms_px": 1.0, "max_sigma_translation_m": 50.0, "max_sigma_rotation_deg": 0.1}),
+            "max_sigma_translation_m",
+        ),
+        (
+            json!({"max_rms_px": 1.0, "max_sigma_translation_m": 0.005}),
+            "max_sigma_rotation_deg",
+        ),
+        (
+            json!({"max_rms_px": 1.0, "max_sigma_translation_m": 0.005, "max_sigma_rotation_deg": 0.1, "max_rms": 2}),
+            "max_rms",
+        ),
+    ] {
+        let p = expect_problem(put(body).await.unwrap(), 422, "invalid-field").await;
+        assert!(p["field"].as_str().unwrap().contains(field), "{p}");
+    }
+    assert_eq!(get_json(&c, &s, "/v1/tenant/thresholds").await, tight);
+    // Another tenant's thresholds are its own.
+    let other = client(&api_key(dir.path(), "line-4"));
+    assert_eq!(
+        get_json(&other, &s, "/v1/tenant/thresholds").await,
+        defaults
+    );
+}

@@ -127,12 +127,19 @@ pub fn json_body<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiEr
     let de = &mut serde_json::Deserializer::from_slice(body);
     serde_path_to_error::deserialize(de).map_err(|e| {
         let path = e.path().to_string();
-        let path = if path == "." {
-            "(document)".into()
-        } else {
-            path
+        let inner = e.inner().to_string();
+        // serde reports a missing field at its parent's path; the field is the missing one.
+        let missing = inner
+            .strip_prefix("missing field `")
+            .and_then(|r| r.split_once('`'))
+            .map(|(name, _)| name.to_string());
+        let path = match (path.as_str(), missing) {
+            (".", Some(m)) => m,
+            (".", None) => "(document)".into(),
+            (p, Some(m)) => format!("{p}.{m}"),
+            (p, None) => p.to_string(),
         };
-        ApiError::invalid(InputError::new(path, e.inner().to_string()))
+        ApiError::invalid(InputError::new(path, inner))
     })
 }
 

@@ -164,6 +164,10 @@ pub fn build_app(state: AppState) -> Router {
         )
         .route("/jobs/{id}", get(jobs::show).delete(jobs::cancel))
         .route("/tenant", get(tenant::show))
+        .route(
+            "/tenant/thresholds",
+            get(tenant::thresholds).put(tenant::set_thresholds),
+        )
         .route("/jobs/{id}/figures/{name}", get(figures::job))
         .route("/vehicles/{vehicle_id}/drift.svg", get(figures::drift))
         .route("/jobs/{id}/result", get(jobs::result))

@@ -211,7 +211,7 @@ mod tests {
                 || path.starts_with("/jobs")
                 || path.starts_with("/vehicles")
                 || path == "/events"
-                || path == "/tenant"
+                || path.starts_with("/tenant")
             {
                 format!("/v1{path}")
             } else {

@@ -106,6 +106,24 @@ pub fn key_hash(key: &str) -> String {
 }
 
 impl Store {
+    /// Replace a tenant's acceptance thresholds.
+    pub async fn set_thresholds(
+        &self,
+        tenant_id: &str,
+        max_rms_px: f64,
+        max_sigma_translation_m: f64,
+        max_sigma_rotation_deg: f64,
+    ) -> sqlx::Result<()> {
+        sqlx::query("UPDATE tenants SET max_rms_px = ?, max_sigma_translation_m = ?, max_sigma_rotation_deg = ? WHERE id = ?")
+            .bind(max_rms_px)
+            .bind(max_sigma_translation_m)
+            .bind(max_sigma_rotation_deg)
+            .bind(tenant_id)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+
     /// Open (creating if needed) the database and blob directory under `data_dir`, and
     /// apply pending migrations. WAL, foreign keys, a busy timeout, synchronous=FULL so an
     /// acknowledged write survives a crash.
