@@ -164,3 +164,35 @@ async fn an_archive_upload_is_replayed_by_its_key() {
     changed[n - 2000] ^= 1;
     expect_problem(send(changed).await.unwrap(), 422, "idempotency-key-reused").await;
 }
+
+/// Two identical submits in flight at once (a script that retries before the first
+/// answer arrives) give one job: the second is a replay or a 409 to retry, never a job.
+#[tokio::test]
+async fn concurrent_retries_create_one_job() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let c = client(&api_key(dir.path(), "factory"));
+    let sid = create_session(&c, &s, &synth_session("lebraly-5.1", 2, 0.3, "car-2")).await;
+    let submit = json!({"session_id": sid["id"]});
+    for round in 0..5 {
+        let key = format!("concurrent-{round}");
+        let sends = (0..4).map(|_| post(&c, &s, "/v1/jobs", Some(&key), &submit));
+        let answers = futures::future::join_all(sends).await;
+        let mut ids = std::collections::BTreeSet::new();
+        for r in answers {
+            match r.status().as_u16() {
+                202 => {
+                    let j: Value = r.json().await.unwrap();
+                    ids.insert(j["id"].as_str().unwrap().to_string());
+                }
+                409 => {
+                    let p: Value = r.json().await.unwrap();
+                    assert_eq!(p["type"], "urn:rigcal:problem:request-in-progress", "{p}");
+                }
+                other => panic!("unexpected {other}: {:?}", r.text().await),
+            }
+        }
+        assert_eq!(ids.len(), 1, "round {round}: {ids:?}");
+        assert_eq!(jobs_total(&c, &s).await, round + 1);
+    }
+}
