@@ -6,8 +6,9 @@ use rigcal_engine::export::{render_for, ExportError, Format};
 use rigcal_engine::pipeline::{run as run_pipeline, CalibOptions, DirSource, LossKind, Silent};
 use std::path::PathBuf;
 
-/// Calibrate a capture session (JSON); prints the result document. Exit code 0
-/// succeeded, 3 degraded, 1 failed or bad input.
+/// Calibrate a capture session (JSON, or a job bundle `.tar` from
+/// `GET /v1/jobs/{id}/bundle`, replayed with the job's options); prints the result
+/// document. Exit code 0 succeeded, 3 degraded, 1 failed or bad input.
 #[derive(clap::Args)]
 pub struct Args {
     session: PathBuf,
@@ -25,15 +26,63 @@ pub struct Args {
     loss_scale: f64,
 }
 
+/// A job bundle unpacked: its directory (kept while it lives) and the job's options.
+struct Bundle {
+    dir: tempfile::TempDir,
+    loss: LossKind,
+    loss_scale: f64,
+}
+
+/// Unpack `path` if it is a tar (a job bundle); `None` for anything else.
+fn unpack_bundle(path: &std::path::Path) -> Result<Option<Bundle>> {
+    let mut head = [0u8; 262];
+    let n = std::io::Read::read(&mut std::fs::File::open(path)?, &mut head)?;
+    if n < 262 || &head[257..262] != b"ustar" {
+        return Ok(None);
+    }
+    let dir = tempfile::tempdir().context("a temporary directory for the bundle")?;
+    // `unpack` refuses entries that would land outside the directory (`..`, absolute).
+    tar::Archive::new(std::fs::File::open(path)?)
+        .unpack(dir.path())
+        .with_context(|| format!("unpacking the bundle {}", path.display()))?;
+    let job: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(dir.path().join("job.json")).context("the bundle has no job.json")?,
+    )
+    .context("the bundle's job.json")?;
+    let loss = job["options"]["loss"]
+        .as_str()
+        .ok_or_else(|| anyhow!("the bundle's job.json: options.loss, a string, is missing"))?
+        .parse::<LossKind>()
+        .map_err(|e| anyhow!("the bundle's job.json options.loss: {e}"))?;
+    let loss_scale = job["options"]["loss_scale"].as_f64().ok_or_else(|| {
+        anyhow!("the bundle's job.json: options.loss_scale, a number, is missing")
+    })?;
+    Ok(Some(Bundle {
+        dir,
+        loss,
+        loss_scale,
+    }))
+}
+
 pub fn run(a: Args) -> Result<i32> {
+    let bundle =
+        unpack_bundle(&a.session).with_context(|| format!("reading {}", a.session.display()))?;
+    let (manifest, loss, loss_scale) = match &bundle {
+        Some(b) => (b.dir.path().join("session.json"), b.loss, b.loss_scale),
+        None => (a.session.clone(), a.loss, a.loss_scale),
+    };
+    if bundle.is_some() {
+        eprintln!(
+            "replaying the job bundle with its options (loss {loss:?}, scale {loss_scale} px)"
+        );
+    }
     let bytes =
-        std::fs::read(&a.session).with_context(|| format!("reading {}", a.session.display()))?;
+        std::fs::read(&manifest).with_context(|| format!("reading {}", manifest.display()))?;
     let session = parse_session(&bytes).map_err(|e| anyhow!("session: {e}"))?;
-    let opts = CalibOptions::from_loss(a.loss, a.loss_scale)
+    let opts = CalibOptions::from_loss(loss, loss_scale)
         .map_err(|e| anyhow!("--{}: {}", e.field.replace('_', "-"), e.expected))?;
     // Images are named relative to the session file.
-    let dir = a
-        .session
+    let dir = manifest
         .parent()
         .map(|p| p.to_path_buf())
         .unwrap_or_default();

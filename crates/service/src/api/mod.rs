@@ -3,6 +3,7 @@
 
 mod archive;
 pub mod auth;
+mod bundle;
 pub mod error;
 mod events;
 mod figures;
@@ -171,6 +172,7 @@ pub fn build_app(state: AppState) -> Router {
         .route("/jobs/{id}/figures/{name}", get(figures::job))
         .route("/vehicles/{vehicle_id}/drift.svg", get(figures::drift))
         .route("/jobs/{id}/result", get(jobs::result))
+        .route("/jobs/{id}/bundle", get(bundle::bundle))
         .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
         .route(
             "/vehicles/{vehicle_id}/calibrations",
