@@ -48,6 +48,10 @@ async fn every_preset_replays_from_its_bundle() {
         "pure-translation",
         "single-axis",
         "wu-table2",
+        "car-hall",
+        "car-hall-planar",
+        "car-hall-isolated",
+        "fisheye-handheld",
     ];
     let mut jobs = Vec::new();
     for p in presets {

@@ -92,10 +92,18 @@ pub fn client(key: &str) -> reqwest::Client {
         .unwrap()
 }
 
-/// A synthetic session (detections) as JSON bytes, with a vehicle id.
+/// The session `rigcal synth --preset P --seed S --noise N` writes (detections only for
+/// the hall presets), for vehicle `vehicle`.
 pub fn synth_session(preset: &str, seed: u64, noise: f64, vehicle: &str) -> Value {
-    let (m, _) = rigcal_synth::generate(preset, seed, noise).expect("preset");
-    let mut v = serde_json::to_value(&m).unwrap();
+    let mut v = if rigcal_synth::hall::PRESETS.contains(&preset) {
+        let dir = tempfile::tempdir().unwrap();
+        let hall = rigcal_synth::hall::hall(preset, seed, None).expect("hall preset");
+        rigcal_synth::hall::write_capture(&hall, dir.path(), None, noise, seed).unwrap();
+        serde_json::from_slice(&std::fs::read(dir.path().join("session.json")).unwrap()).unwrap()
+    } else {
+        let (m, _) = rigcal_synth::generate(preset, seed, noise).expect("preset");
+        serde_json::to_value(&m).unwrap()
+    };
     v["vehicle_id"] = Value::String(vehicle.into());
     v
 }
