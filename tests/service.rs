@@ -979,3 +979,51 @@ async fn thresholds_are_set_over_the_api_and_rejudge_old_jobs() {
         defaults
     );
 }
+
+/// `rigcal apikey list` shows keys without their secrets; `revoke` shuts a key out of a
+/// running server at once and leaves the tenant's other keys working.
+#[tokio::test]
+async fn a_revoked_key_is_refused_and_the_others_still_work() {
+    let dir = tempfile::tempdir().unwrap();
+    let s = Server::start(dir.path(), &["--workers", "0"]);
+    let (k1, k2) = (api_key(dir.path(), "line-5"), api_key(dir.path(), "line-5"));
+    let apikey = |args: &[&str]| {
+        std::process::Command::new(BIN)
+            .arg("apikey")
+            .args(args)
+            .arg("--data-dir")
+            .arg(dir.path())
+            .output()
+            .unwrap()
+    };
+    let out = apikey(&["list", "--tenant", "line-5"]);
+    assert!(out.status.success());
+    let listing = String::from_utf8(out.stdout).unwrap();
+    assert!(
+        !listing.contains(&k1) && !listing.contains(&k2),
+        "secrets listed: {listing}"
+    );
+    let rows: Vec<&str> = listing.lines().skip(1).collect();
+    assert_eq!(rows.len(), 2, "{listing}");
+    let first = rows
+        .iter()
+        .find(|r| k1.starts_with(r.split_whitespace().nth(2).unwrap()))
+        .unwrap();
+    let id = first.split_whitespace().next().unwrap();
+    assert!(apikey(&["revoke", id]).status.success());
+    let r = client(&k1).get(s.url("/v1/tenant")).send().await.unwrap();
+    expect_problem(r, 401, "unauthorized").await;
+    let r = client(&k2).get(s.url("/v1/tenant")).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 200);
+    // Revoking again, or an unknown id, is an error naming it.
+    let again = apikey(&["revoke", id]);
+    assert_eq!(again.status.code(), Some(1));
+    assert!(String::from_utf8_lossy(&again.stderr).contains(id));
+    let listing = String::from_utf8(apikey(&["list"]).stdout).unwrap();
+    assert!(
+        listing
+            .lines()
+            .any(|l| l.starts_with(id) && !l.ends_with('-')),
+        "{listing}"
+    );
+}

@@ -67,6 +67,16 @@ pub struct SessionRow {
     pub created_at: i64,
 }
 
+/// An API key as listed: never its secret.
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct ApiKeyRow {
+    pub id: String,
+    pub tenant: String,
+    pub prefix: String,
+    pub created_at: i64,
+    pub revoked_at: Option<i64>,
+}
+
 #[derive(Clone, Debug, serde::Serialize)]
 pub struct ImageRow {
     pub camera: String,
@@ -185,6 +195,37 @@ impl Store {
         .execute(&self.pool)
         .await?;
         Ok(secret)
+    }
+
+    /// API keys (never the secrets: id, tenant, the first characters, dates), oldest
+    /// first, of one tenant or all.
+    pub async fn api_keys(&self, tenant: Option<&str>) -> sqlx::Result<Vec<ApiKeyRow>> {
+        let rows = sqlx::query("SELECT k.id, t.name, k.prefix, k.created_at, k.revoked_at FROM api_keys k JOIN tenants t ON t.id = k.tenant_id WHERE ?1 IS NULL OR t.name = ?1 ORDER BY k.created_at, k.id")
+            .bind(tenant)
+            .fetch_all(&self.pool)
+            .await?;
+        Ok(rows
+            .iter()
+            .map(|r| ApiKeyRow {
+                id: r.get("id"),
+                tenant: r.get("name"),
+                prefix: r.get("prefix"),
+                created_at: r.get("created_at"),
+                revoked_at: r.get("revoked_at"),
+            })
+            .collect())
+    }
+
+    /// Revoke the key `id`; `false` if there is no such key or it was revoked already.
+    pub async fn revoke_api_key(&self, id: &str) -> sqlx::Result<bool> {
+        let n =
+            sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
+                .bind(now_ms())
+                .bind(id)
+                .execute(&self.pool)
+                .await?
+                .rows_affected();
+        Ok(n == 1)
     }
 
     pub async fn tenant_for_key(&self, key: &str) -> sqlx::Result<Option<Tenant>> {
