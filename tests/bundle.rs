@@ -39,20 +39,10 @@ async fn every_preset_replays_from_its_bundle() {
     let dir = tempfile::tempdir().unwrap();
     let s = Server::start(dir.path(), &["--workers", "2"]);
     let c = client(&api_key(dir.path(), "support"));
-    let presets = [
-        "lebraly-5.1",
-        "car-planar-uturn",
-        "car-planar",
-        "car-planar-loop",
-        "car-bump",
-        "pure-translation",
-        "single-axis",
-        "wu-table2",
-        "car-hall",
-        "car-hall-planar",
-        "car-hall-isolated",
-        "fisheye-handheld",
-    ];
+    let presets = rigcal_synth::PRESETS
+        .iter()
+        .chain(rigcal_synth::hall::PRESETS)
+        .copied();
     let mut jobs = Vec::new();
     for p in presets {
         let sid = create_session(&c, &s, &synth_session(p, 3, 0.3, "car-1")).await;

@@ -12,20 +12,13 @@ use rigcal_engine::pipeline::{run, CalibOptions, LossKind, NoImages, Silent};
 use serde_json::Value;
 use std::path::Path;
 
-const PRESETS: &[&str] = &[
-    "lebraly-5.1",
-    "car-planar-uturn",
-    "car-planar",
-    "car-planar-loop",
-    "car-bump",
-    "pure-translation",
-    "single-axis",
-    "wu-table2",
-    "car-hall",
-    "car-hall-planar",
-    "car-hall-isolated",
-    "fisheye-handheld",
-];
+/// Every preset `rigcal synth` knows: the classic ones and the hall captures.
+fn presets() -> impl Iterator<Item = &'static str> {
+    rigcal_synth::PRESETS
+        .iter()
+        .chain(rigcal_synth::hall::PRESETS)
+        .copied()
+}
 
 /// The session the CLI's `rigcal synth --preset P --seed 7 --noise 0.3` writes.
 fn session_bytes(preset: &str) -> Vec<u8> {
@@ -81,7 +74,7 @@ fn every_preset_calibrates_to_its_golden_result() {
     let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/golden");
     let bless = std::env::var_os("RIGCAL_BLESS").is_some();
     let mut failures = Vec::new();
-    for preset in PRESETS {
+    for preset in presets() {
         let got = result_of(preset);
         let file = dir.join(format!("{preset}.json"));
         if bless {
