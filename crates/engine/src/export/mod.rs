@@ -113,20 +113,23 @@ pub fn render_for(
     format: Format,
     camera: Option<&str>,
 ) -> Result<String, ExportError> {
-    if camera.is_some() != (format == Format::CameraInfo) {
-        return Err(ExportError::Camera(if camera.is_some() {
-            format!(
-                "camera: only for format camera_info, not {}",
-                format.as_str()
-            )
-        } else {
+    let camera_info_of = match (format, camera) {
+        (Format::CameraInfo, Some(c)) => Some(c),
+        (Format::CameraInfo, None) => {
             let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
-            format!(
+            return Err(ExportError::Camera(format!(
                 "camera_info describes one camera: one of {}",
                 ids.join(", ")
-            )
-        }));
-    }
+            )));
+        }
+        (_, Some(_)) => {
+            return Err(ExportError::Camera(format!(
+                "camera: only for format camera_info, not {}",
+                format.as_str()
+            )))
+        }
+        (_, None) => None,
+    };
     if format == Format::Json {
         return serde_json::to_string_pretty(doc)
             .map_err(|e| ExportError::Unrepresentable(e.to_string()));
@@ -143,7 +146,11 @@ pub fn render_for(
         Format::Urdf => Ok(urdf::render(&rig)),
         Format::Colmap => colmap::render(&rig),
         Format::Ros2 => Ok(ros2::launch(&rig)),
-        Format::CameraInfo => ros2::camera_info(&rig, camera.unwrap_or_default()),
+        // (`camera_info_of` is `Some` for this format: checked at the top.)
+        Format::CameraInfo => camera_info_of.map_or_else(
+            || Err(ExportError::Camera("camera_info needs a camera".into())),
+            |c| ros2::camera_info(&rig, c),
+        ),
         Format::Json => unreachable!("handled above"),
     }
 }

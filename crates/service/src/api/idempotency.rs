@@ -191,7 +191,18 @@ async fn replay(answer: StoredAnswer, route: &str, body: Body, limit: usize) -> 
         return mismatch("a request with another body");
     }
     let mut r = Response::new(Body::from(answer.body));
-    *r.status_mut() = StatusCode::from_u16(answer.status).unwrap_or(StatusCode::OK);
+    // Only successful answers are stored (`keep`), so the status is a 2xx we wrote; a
+    // stored value that is no status is a corrupt record, said as such.
+    match StatusCode::from_u16(answer.status) {
+        Ok(s) => *r.status_mut() = s,
+        Err(_) => {
+            return ApiError::internal(format!(
+                "stored idempotency answer has status {}",
+                answer.status
+            ))
+            .into_response()
+        }
+    }
     let headers = r.headers_mut();
     for (name, value) in [
         (header::CONTENT_TYPE, answer.content_type),
