@@ -9,3 +9,4 @@ pub mod result;
 pub mod session;
 pub mod target;
 pub mod verdict;
+pub mod xml;

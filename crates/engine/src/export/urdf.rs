@@ -3,21 +3,7 @@
 
 use super::Rig;
 
-/// Text escaped for an XML attribute value in double quotes.
-pub(super) fn xml_attr(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for c in s.chars() {
-        match c {
-            '&' => out.push_str("&amp;"),
-            '<' => out.push_str("&lt;"),
-            '>' => out.push_str("&gt;"),
-            '"' => out.push_str("&quot;"),
-            '\'' => out.push_str("&apos;"),
-            c => out.push(c),
-        }
-    }
-    out
-}
+pub(super) use rigcal_core::xml::escape as xml_attr;
 
 pub(super) fn render(rig: &Rig) -> String {
     let reference = xml_attr(rig.reference);

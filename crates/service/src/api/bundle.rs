@@ -13,7 +13,8 @@ use axum::http::header;
 use axum::response::{IntoResponse, Response};
 use rigcal_core::session::{image_slots, parse_session};
 use serde_json::json;
-use std::io::{Read, Seek};
+use std::io::Seek;
+use tokio::io::AsyncReadExt;
 
 pub async fn bundle(
     State(state): State<AppState>,
@@ -86,10 +87,10 @@ pub async fn bundle(
     .map_err(ApiError::internal)?
     .map_err(ApiError::internal)?;
     let stream = async_stream::stream! {
-        let mut file = file;
+        let mut file = tokio::fs::File::from_std(file);
         let mut buf = vec![0u8; 1 << 16];
         loop {
-            match tokio::task::block_in_place(|| file.read(&mut buf)) {
+            match file.read(&mut buf).await {
                 Ok(0) => break,
                 Ok(n) => yield Ok::<Bytes, std::io::Error>(Bytes::copy_from_slice(&buf[..n])),
                 Err(e) => { yield Err(e); break; }

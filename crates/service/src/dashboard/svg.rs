@@ -15,21 +15,7 @@ pub const PALETTE: [&str; 7] = [
 ];
 
 /// XML text escaping for element content and attribute values.
-pub fn esc(s: &str) -> String {
-    let mut out = String::with_capacity(s.len());
-    for c in s.chars() {
-        match c {
-            '&' => out.push_str("&amp;"),
-            '<' => out.push_str("&lt;"),
-            '>' => out.push_str("&gt;"),
-            '"' => out.push_str("&quot;"),
-            '\'' => out.push_str("&#39;"),
-            c if (c as u32) < 0x20 && c != '\n' && c != '\t' => out.push('\u{FFFD}'),
-            c => out.push(c),
-        }
-    }
-    out
-}
+pub use rigcal_core::xml::escape as esc;
 
 /// An SVG document with an accessible name (`<title>`) and a longer description.
 fn open(w: f64, h: f64, title: &str, desc: &str) -> String {
