@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
 # The test command of README.md: installs what the tests need on a fresh machine
-# (Debian's Chromium, Node.js and the browser test's npm packages, a Python venv for the
-# contract test and the format checks), then runs every test: `cargo test --release --workspace` (unit, engine, service
-# over real HTTP, crash test, the dashboard in headless Chromium) and the HTTP contract
-# test (schemathesis against the live server) and the export format checks (PyYAML,
-# OpenCV, pycolmap in a venv). .ci/run calls this same script.
+# (Debian's Chromium, Node.js and the browser test's npm packages, Debian's PostgreSQL,
+# moto's S3 server and Python venvs for the contract test and the format checks), then
+# runs every test: `cargo test --release --workspace` (unit, engine, service over real
+# HTTP, crash test, the dashboard in headless Chromium) on the embedded default (SQLite,
+# local blobs); the service, queue, crash, fleet and dashboard-API tests again on a
+# throwaway PostgreSQL cluster and S3-compatible server; the HTTP contract test
+# (schemathesis against the live server) and the export format checks (PyYAML, OpenCV,
+# pycolmap in a venv). .ci/run calls this same script.
 #
 # Safe to run again: every install step is skipped when its result is already there.
 # RIGCAL_TEST_NO_INSTALL=1 skips the installs (for a machine set up by hand).
@@ -29,12 +32,20 @@ apt_install() {
   DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq "$@" >/dev/null
 }
 
+export RIGCAL_MOTO_VENV="${RIGCAL_MOTO_VENV:-$PWD/target/moto-venv}"
 if [ "${RIGCAL_TEST_NO_INSTALL:-0}" != 1 ]; then
   python3 -c 'import venv, ensurepip' 2>/dev/null || apt_install python3-venv
   # The dashboard's browser test: Debian's Chromium driven by playwright-core (no browser
   # download; tests/dashboard.rs finds /usr/bin/chromium).
   [ -x "${RIGCAL_CHROMIUM:-/usr/bin/chromium}" ] || apt_install chromium
   command -v node >/dev/null || apt_install nodejs npm
+  # The remote-backend run: PostgreSQL (initdb, pg_ctl, psql) and curl for moto.
+  ls /usr/lib/postgresql/*/bin/initdb >/dev/null 2>&1 || apt_install postgresql
+  command -v curl >/dev/null || apt_install curl
+  if [ ! -x "$RIGCAL_MOTO_VENV/bin/moto_server" ]; then
+    python3 -m venv "$RIGCAL_MOTO_VENV"
+    "$RIGCAL_MOTO_VENV/bin/pip" install -q --disable-pip-version-check 'moto[server]==5.*'
+  fi
   if [ ! -d tests/browser/node_modules/playwright-core ] ||
     [ tests/browser/package-lock.json -nt tests/browser/node_modules ]; then
     npm ci --prefix tests/browser --no-audit --no-fund --loglevel=error
@@ -42,6 +53,15 @@ if [ "${RIGCAL_TEST_NO_INSTALL:-0}" != 1 ]; then
 fi
 
 cargo test --release --workspace "$@"
+# The same service tests on PostgreSQL + S3 (tests/common reads the variables that
+# start_backends exports).
+source scripts/backends.sh
+trap stop_backends EXIT
+start_backends
+cargo test --release --test service --test queue --test crash --test fleet \
+  --test dashboard_api --test idempotency --test bundle --test blobs "$@"
+stop_backends
+trap - EXIT
 # The HTTP contract: openapi.yaml against the running server (built by the line above).
 bash scripts/contract.sh
 # The exports read back by the tools that consume them (Kalibr's rules, OpenCV, COLMAP).

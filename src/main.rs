@@ -30,10 +30,13 @@ enum Command {
     Synth(cli::synth::Args),
     /// Compare a result document with a synthetic ground truth.
     Compare(cli::compare::Args),
-    /// The service: HTTP API, dashboard and embedded workers on SQLite in --data-dir.
+    /// The service: HTTP API, dashboard and embedded workers (SQLite in --data-dir, or
+    /// PostgreSQL and S3 shared by replicas).
     Serve(cli::serve::Args),
-    /// Workers only, on the same database as a `serve` (several may run).
+    /// Workers only, on the same database and blobs as a `serve` (any number, any host).
     Worker(cli::worker::Args),
+    /// Apply the database migrations and exit (a deployment's one-off step).
+    Migrate(cli::migrate::Args),
     /// API keys.
     Apikey {
         #[command(subcommand)]
@@ -57,6 +60,7 @@ fn main() {
         Command::Compare(a) => cli::compare::run(a),
         Command::Serve(a) => cli::serve::run(a),
         Command::Worker(a) => cli::worker::run(a),
+        Command::Migrate(a) => cli::migrate::run(a),
         Command::Apikey { what } => cli::apikey::run(what),
         Command::Demo(a) => cli::demo::run(a),
         Command::Bench { what } => cli::bench::run(what),

@@ -8,13 +8,6 @@ use common::*;
 use serde_json::Value;
 use std::time::Duration;
 
-fn without_timings(mut v: Value) -> Value {
-    if let Some(o) = v.as_object_mut() {
-        o.remove("stages");
-    }
-    v
-}
-
 async fn bundle_of(c: &reqwest::Client, s: &Server, id: &str) -> Vec<u8> {
     let r = c
         .get(s.url(&format!("/v1/jobs/{id}/bundle")))

@@ -6,7 +6,6 @@ mod common;
 
 use common::*;
 use serde_json::Value;
-use sqlx::Row;
 use std::time::{Duration, Instant};
 
 #[tokio::test]
@@ -104,31 +103,17 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
         .unwrap();
     assert_eq!(sess["images_received"], 6);
     for sha in &acked {
-        let blob = dir.path().join("blobs").join(&sha[..2]).join(sha);
-        let bytes = std::fs::read(&blob).expect("acknowledged blob present");
+        let bytes = read_blob(dir.path(), sha)
+            .await
+            .expect("acknowledged blob present");
         assert_eq!(&rigcal_service::store::blob::sha256_hex(&bytes), sha);
     }
     drop(s);
 
-    let store = rigcal_service::store::Store::open(dir.path())
-        .await
-        .unwrap();
+    let store = open_store(dir.path()).await;
     assert_eq!(store.integrity_check().await.unwrap(), "ok");
     for id in &jobs {
-        let results: i64 = sqlx::query("SELECT COUNT(*) FROM results WHERE job_id = ?")
-            .bind(id)
-            .fetch_one(&store.pool)
-            .await
-            .unwrap()
-            .get(0);
-        assert_eq!(results, 1, "job {id}");
-        let terminal: i64 = sqlx::query("SELECT COUNT(*) FROM job_events WHERE job_id = ? AND kind = 'status' AND status IN ('succeeded','degraded','failed','cancelled')")
-            .bind(id)
-            .fetch_one(&store.pool)
-            .await
-            .unwrap()
-            .get(0);
-        assert_eq!(terminal, 1, "job {id}");
+        assert_eq!(finished_once(&store, id).await, (1, 1), "job {id}");
     }
 }
 
@@ -138,7 +123,7 @@ async fn a_separate_worker_process_runs_the_jobs_of_an_api_only_server() {
     let key = api_key(dir.path(), "acme");
     let c = client(&key);
     let s = Server::start(dir.path(), &["--workers", "0"]);
-    let mut worker = std::process::Command::new(BIN)
+    let mut worker = rigcal(dir.path())
         .args(["worker", "--workers", "1", "--data-dir"])
         .arg(dir.path())
         .env("RUST_LOG", "warn")

@@ -13,13 +13,12 @@
 mod common;
 
 use common::*;
+use rigcal_service::store::db::sql;
 use serde_json::{json, Value};
 use std::io::{BufRead, BufReader};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-
-const BIN: &str = env!("CARGO_BIN_EXE_rigcal");
 
 fn browser_dir() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/browser")
@@ -53,7 +52,7 @@ impl Drop for KillOnDrop {
 /// minutes to accept that many): statuses, vehicles and methods mixed, finished ones
 /// with a residual RMS. Returns how many of them are `failed`.
 async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
-    let store = rigcal_service::store::Store::open(dir).await.unwrap();
+    let store = open_store(dir).await;
     let t = store.ensure_tenant(tenant).await.unwrap();
     let session = store
         .insert_session(&t, Some("fleet-0"), "motion", "{}", None)
@@ -62,12 +61,12 @@ async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
     let now = rigcal_service::store::now_ms();
     let statuses = ["succeeded", "succeeded", "degraded", "failed", "succeeded"];
     let mut failed = 0;
-    let mut tx = store.pool.begin().await.unwrap();
+    let mut tx = store.db.begin().await.unwrap();
     for k in 0..n {
         let status = statuses[k % statuses.len()];
         failed += (status == "failed") as i64;
         let created = now - (k as i64) * 259_200; // 30 days over 10 000 jobs
-        sqlx::query("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, method, options, status, progress, attempts, max_attempts, run_after, residual_rms_px, worst_sigma_translation_m, worst_sigma_rotation_deg, created_at, started_at, finished_at) VALUES (?, ?, ?, ?, ?, '{}', ?, 1, 1, 3, ?, ?, ?, ?, ?, ?, ?)")
+        tx.execute(sql("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, method, options, status, progress, attempts, max_attempts, run_after, residual_rms_px, worst_sigma_translation_m, worst_sigma_rotation_deg, created_at, started_at, finished_at) VALUES ($1, $2, $3, $4, $5, '{}', $6, 1, 1, 3, $7, $8, $9, $10, $11, $12, $13)")
             .bind(uuid::Uuid::new_v4().to_string())
             .bind(&t.id)
             .bind(&session.id)
@@ -80,8 +79,7 @@ async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
             .bind((status != "failed").then_some(0.02))
             .bind(created)
             .bind(created + 1000)
-            .bind(created + 4000)
-            .execute(&mut *tx)
+            .bind(created + 4000))
             .await
             .unwrap();
     }
@@ -183,7 +181,7 @@ async fn dashboard_end_to_end_in_headless_chromium() {
         println!("browser: {line}");
         if line.trim() == "START_WORKER" && worker.is_none() {
             worker = Some(KillOnDrop(
-                Command::new(BIN)
+                rigcal(dir.path())
                     .args(["worker", "--data-dir"])
                     .arg(dir.path())
                     .env("RUST_LOG", "warn")

@@ -1,5 +1,8 @@
-//! Queue semantics on a real SQLite database: atomic claims, leases, exactly-once
-//! completion, retry with backoff, attempt limits, cancellation.
+//! Queue semantics on a real database (SQLite, or PostgreSQL in the remote run): atomic
+//! claims, leases, exactly-once completion, retry with backoff, attempt limits,
+//! cancellation.
+
+mod common;
 
 use rigcal_service::jobs::acceptance::ResultSummary;
 use rigcal_service::jobs::queue::{FailOutcome, JobStatus, Queue};
@@ -8,13 +11,13 @@ use serde_json::json;
 
 async fn setup() -> (tempfile::TempDir, Store, Queue, String, String) {
     let dir = tempfile::tempdir().unwrap();
-    let store = Store::open(dir.path()).await.unwrap();
+    let store = common::open_store(dir.path()).await;
     let t = store.ensure_tenant("acme").await.unwrap();
     let s = store
         .insert_session(&t, Some("car"), "motion", "{}", None)
         .await
         .unwrap();
-    let q = Queue::new(store.pool.clone());
+    let q = Queue::new(store.db.clone());
     (dir, store, q, t.id, s.id)
 }
 

@@ -10,12 +10,6 @@ use std::time::Duration;
 
 const MIN: Duration = Duration::from_secs(60);
 
-/// Remove timings, which differ between two runs of the same computation.
-fn without_timings(mut v: Value) -> Value {
-    v["stages"] = Value::Null;
-    v
-}
-
 #[tokio::test]
 async fn detections_to_result_matches_the_cli_and_history_shows_drift() {
     let dir = tempfile::tempdir().unwrap();
@@ -365,12 +359,8 @@ async fn images_upload_idempotently_and_every_bad_image_is_refused_without_damag
     assert_eq!(v["images_received"], 4);
     assert_eq!(v["images_missing"].as_array().unwrap().len(), 0);
     // Images are immutable: the first upload of front/0 is still the one stored.
-    let blob = dir
-        .path()
-        .join("blobs")
-        .join(&first["sha256"].as_str().unwrap()[..2])
-        .join(first["sha256"].as_str().unwrap());
-    assert_eq!(std::fs::read(blob).unwrap(), png(64, 48, 1));
+    let blob = read_blob(dir.path(), first["sha256"].as_str().unwrap()).await;
+    assert_eq!(blob.unwrap(), png(64, 48, 1));
 }
 
 #[tokio::test]
@@ -988,7 +978,7 @@ async fn a_revoked_key_is_refused_and_the_others_still_work() {
     let s = Server::start(dir.path(), &["--workers", "0"]);
     let (k1, k2) = (api_key(dir.path(), "line-5"), api_key(dir.path(), "line-5"));
     let apikey = |args: &[&str]| {
-        std::process::Command::new(BIN)
+        rigcal(dir.path())
             .arg("apikey")
             .args(args)
             .arg("--data-dir")

@@ -1,10 +1,10 @@
 //! `rigcal apikey`: API keys, created, listed and revoked straight in the store.
 
+use super::StoreArgs;
 use anyhow::{anyhow, Result};
 use rigcal_core::session::check_identifier;
 use rigcal_service::api::auth::LOCAL_TENANT;
 use rigcal_service::store::{rfc3339, Store};
-use std::path::PathBuf;
 
 #[derive(clap::Subcommand)]
 pub enum Command {
@@ -12,32 +12,32 @@ pub enum Command {
     Create {
         #[arg(long)]
         tenant: String,
-        #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
-        data_dir: PathBuf,
+        #[command(flatten)]
+        store: StoreArgs,
     },
     /// The keys (id, tenant, first characters, created, revoked), never their secrets.
     List {
         /// Only this tenant's keys.
         #[arg(long)]
         tenant: Option<String>,
-        #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
-        data_dir: PathBuf,
+        #[command(flatten)]
+        store: StoreArgs,
     },
     /// Revoke a key by its id (from `list`): requests with it are refused from now on.
     Revoke {
         id: String,
-        #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
-        data_dir: PathBuf,
+        #[command(flatten)]
+        store: StoreArgs,
     },
 }
 
 pub fn run(c: Command) -> Result<i32> {
     match c {
-        Command::Create { tenant, data_dir } => create(&tenant, &data_dir),
-        Command::List { tenant, data_dir } => {
+        Command::Create { tenant, store } => create(&tenant, &store),
+        Command::List { tenant, store } => {
             let keys = super::runtime()?.block_on(async {
                 anyhow::Ok(
-                    Store::open(&data_dir)
+                    Store::connect(&store.location())
                         .await?
                         .api_keys(tenant.as_deref())
                         .await?,
@@ -59,9 +59,14 @@ pub fn run(c: Command) -> Result<i32> {
             }
             Ok(0)
         }
-        Command::Revoke { id, data_dir } => {
+        Command::Revoke { id, store } => {
             let done = super::runtime()?.block_on(async {
-                anyhow::Ok(Store::open(&data_dir).await?.revoke_api_key(&id).await?)
+                anyhow::Ok(
+                    Store::connect(&store.location())
+                        .await?
+                        .revoke_api_key(&id)
+                        .await?,
+                )
             })?;
             if !done {
                 return Err(anyhow!(
@@ -74,7 +79,7 @@ pub fn run(c: Command) -> Result<i32> {
     }
 }
 
-fn create(tenant: &str, data_dir: &std::path::Path) -> Result<i32> {
+fn create(tenant: &str, store: &StoreArgs) -> Result<i32> {
     let name = tenant;
     check_identifier("--tenant", name).map_err(|e| anyhow!("{e}"))?;
     if name == LOCAL_TENANT {
@@ -83,7 +88,7 @@ fn create(tenant: &str, data_dir: &std::path::Path) -> Result<i32> {
         ));
     }
     let key = super::runtime()?.block_on(async {
-        let store = Store::open(data_dir).await?;
+        let store = Store::connect(&store.location()).await?;
         anyhow::Ok(store.create_api_key(name).await?)
     })?;
     println!("{key}");

@@ -4,6 +4,7 @@
 
 use anyhow::{anyhow, Context};
 use rigcal_service::api::{start, ServeConfig};
+use rigcal_service::store::Location;
 use serde_json::Value;
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -42,7 +43,7 @@ async fn serve_sample(data_dir: &Path, bind: &str, exit: bool) -> anyhow::Result
     }
     let cfg = ServeConfig {
         bind: bind.to_string(),
-        data_dir: data_dir.to_path_buf(),
+        store: Location::new(data_dir, None, None),
         insecure_no_auth: true,
         ..ServeConfig::default()
     };

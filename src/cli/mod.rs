@@ -7,11 +7,55 @@ pub mod calibrate;
 pub mod compare;
 pub mod demo;
 pub mod detect;
+pub mod migrate;
 pub mod serve;
 pub mod synth;
 pub mod worker;
 
 use anyhow::{anyhow, Context, Result};
+use rigcal_service::store::{blob::BlobUrl, db::DatabaseUrl, Location};
+use std::path::PathBuf;
+
+/// Where the service keeps its state: the embedded default (SQLite and a blob directory
+/// in `--data-dir`) or a shared database and object store for replicas and workers on
+/// many machines. The same flags on `serve`, `worker`, `apikey` and `migrate`.
+#[derive(clap::Args, Clone, Debug)]
+pub struct StoreArgs {
+    /// Local working directory (upload spools); also holds the embedded default's
+    /// database (rigcal.db) and blobs (blobs/).
+    #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
+    pub data_dir: PathBuf,
+    /// sqlite://PATH or postgres://USER[:PASSWORD]@HOST[:PORT]/DB [default:
+    /// sqlite://DATA_DIR/rigcal.db].
+    #[arg(long, env = "RIGCAL_DATABASE_URL", value_parser = database_url)]
+    pub database_url: Option<String>,
+    /// file://DIR or s3://BUCKET/PREFIX (credentials, region and endpoint from AWS_*)
+    /// [default: file://DATA_DIR/blobs].
+    #[arg(long, env = "RIGCAL_BLOB_URL", value_parser = blob_url)]
+    pub blob_url: Option<String>,
+}
+
+impl StoreArgs {
+    pub fn location(&self) -> Location {
+        Location::new(
+            &self.data_dir,
+            self.database_url.as_deref(),
+            self.blob_url.as_deref(),
+        )
+    }
+}
+
+fn database_url(s: &str) -> std::result::Result<String, String> {
+    DatabaseUrl::parse(s)
+        .map(|_| s.to_string())
+        .map_err(|e| e.to_string())
+}
+
+fn blob_url(s: &str) -> std::result::Result<String, String> {
+    BlobUrl::parse(s)
+        .map(|_| s.to_string())
+        .map_err(|e| e.to_string())
+}
 
 /// Logs (tracing) to stderr; `RUST_LOG` overrides the default `info` for rigcal.
 fn init_logging() {

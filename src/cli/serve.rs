@@ -2,25 +2,25 @@
 //! [`ServeConfig::default`]'s, so the flags and the library cannot drift apart.
 
 use super::worker::JobArgs;
+use super::StoreArgs;
 use anyhow::Result;
 use clap::builder::RangedU64ValueParser;
 use rigcal_service::api::{serve, ServeConfig};
-use std::path::PathBuf;
 use std::time::Duration;
 
 fn d() -> ServeConfig {
     ServeConfig::default()
 }
 
-/// The service: HTTP API, dashboard and embedded workers on SQLite in --data-dir.
+/// The service: HTTP API, dashboard and embedded workers (SQLite and blobs in --data-dir,
+/// or PostgreSQL and S3 shared by many replicas).
 #[derive(clap::Args)]
 pub struct Args {
     /// Address to listen on (port 0 picks a free port).
     #[arg(long, env = "RIGCAL_BIND", default_value_t = d().bind)]
     bind: String,
-    /// SQLite database and image blobs live here.
-    #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
-    data_dir: PathBuf,
+    #[command(flatten)]
+    store: StoreArgs,
     /// Embedded workers (0: API only, run `rigcal worker` separately).
     #[arg(long, env = "RIGCAL_WORKERS", value_parser = RangedU64ValueParser::<usize>::new().range(0..=64),
           default_value_t = d().worker.workers)]
@@ -73,7 +73,7 @@ pub struct Args {
 pub fn run(a: Args) -> Result<i32> {
     let cfg = ServeConfig {
         bind: a.bind,
-        data_dir: a.data_dir,
+        store: a.store.location(),
         insecure_no_auth: a.insecure_no_auth,
         worker: a.job.config(a.workers),
         max_attempts: a.max_attempts,

@@ -1,9 +1,10 @@
-//! `rigcal worker`: workers only, on the same database as a `serve`.
+//! `rigcal worker`: workers only, on the same database and blob store as a `serve`
+//! (any number, on any machine that reaches them).
 
+use super::StoreArgs;
 use anyhow::Result;
 use clap::builder::RangedU64ValueParser;
 use rigcal_service::jobs::worker::{run_standalone, WorkerConfig};
-use std::path::PathBuf;
 use std::time::Duration;
 
 /// The settings a worker shares with `serve`'s embedded workers; their defaults are
@@ -35,8 +36,8 @@ impl JobArgs {
 /// Workers only, on the same database as a `serve` (several may run).
 #[derive(clap::Args)]
 pub struct Args {
-    #[arg(long, env = "RIGCAL_DATA_DIR", default_value = "rigcal-data")]
-    data_dir: PathBuf,
+    #[command(flatten)]
+    store: StoreArgs,
     #[arg(long, env = "RIGCAL_WORKERS", value_parser = RangedU64ValueParser::<usize>::new().range(1..=64),
           default_value_t = WorkerConfig::default().workers)]
     workers: usize,
@@ -45,6 +46,6 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> Result<i32> {
-    super::runtime()?.block_on(run_standalone(&a.data_dir, a.job.config(a.workers)))?;
+    super::runtime()?.block_on(run_standalone(&a.store.location(), a.job.config(a.workers)))?;
     Ok(0)
 }

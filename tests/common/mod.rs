@@ -1,5 +1,12 @@
 //! A real `rigcal serve` process on a random port with its own temp data directory,
 //! talked to over HTTP with reqwest (the way clients do).
+//!
+//! The backend is the embedded default (SQLite and blobs in the data directory) unless
+//! `RIGCAL_TEST_POSTGRES` (a PostgreSQL server URL, no database) and
+//! `RIGCAL_TEST_S3_BUCKET` (an existing bucket; the `AWS_*` settings in the environment
+//! reach it) are set, as `scripts/test.sh` does for its second run: then every data
+//! directory gets its own database and key prefix, and every `rigcal` the tests start
+//! is pointed at them through `RIGCAL_DATABASE_URL` and `RIGCAL_BLOB_URL`.
 #![allow(dead_code)]
 
 use serde_json::Value;
@@ -10,6 +17,76 @@ use std::time::{Duration, Instant};
 
 pub const BIN: &str = env!("CARGO_BIN_EXE_rigcal");
 
+/// The PostgreSQL server and S3 bucket of the remote-backend run, if this is one.
+pub fn remote_backend() -> Option<(String, String)> {
+    let pg = std::env::var("RIGCAL_TEST_POSTGRES").ok()?;
+    let bucket = std::env::var("RIGCAL_TEST_S3_BUCKET").ok()?;
+    Some((pg.trim_end_matches('/').to_string(), bucket))
+}
+
+pub fn is_remote() -> bool {
+    remote_backend().is_some()
+}
+
+/// The database URL and blob URL that stand for `data_dir` in the remote run (its
+/// database created on first use), or `None` for the embedded default.
+pub fn store_urls(data_dir: &Path) -> Option<(String, String)> {
+    use sha2::Digest;
+    static CREATED: std::sync::Mutex<Vec<String>> = std::sync::Mutex::new(Vec::new());
+    let (pg, bucket) = remote_backend()?;
+    let name = format!(
+        "t_{}",
+        &hex::encode(sha2::Sha256::digest(data_dir.display().to_string()))[..16]
+    );
+    let mut created = CREATED.lock().unwrap_or_else(|e| e.into_inner());
+    if !created.contains(&name) {
+        let out = Command::new("psql")
+            .arg(format!("{pg}/postgres"))
+            .args(["-qXc", &format!("CREATE DATABASE {name}")])
+            .output()
+            .expect("run psql (scripts/test.sh installs PostgreSQL)");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            out.status.success() || err.contains("already exists"),
+            "creating database {name}: {err}"
+        );
+        created.push(name.clone());
+    }
+    Some((format!("{pg}/{name}"), format!("s3://{bucket}/{name}")))
+}
+
+/// `rigcal` on the store of `data_dir` (the remote one in the remote run).
+pub fn rigcal(data_dir: &Path) -> Command {
+    let mut c = Command::new(BIN);
+    if let Some((db, blobs)) = store_urls(data_dir) {
+        c.env("RIGCAL_DATABASE_URL", db)
+            .env("RIGCAL_BLOB_URL", blobs);
+    }
+    c
+}
+
+/// The store of `data_dir`, opened in the test process.
+pub async fn open_store(data_dir: &Path) -> rigcal_service::store::Store {
+    let urls = store_urls(data_dir);
+    let at = rigcal_service::store::Location::new(
+        data_dir,
+        urls.as_ref().map(|u| u.0.as_str()),
+        urls.as_ref().map(|u| u.1.as_str()),
+    );
+    rigcal_service::store::Store::connect(&at)
+        .await
+        .expect("open the test store")
+}
+
+/// A stored blob's bytes, read (and verified) through the blob store of `data_dir`.
+pub async fn read_blob(data_dir: &Path, sha: &str) -> std::io::Result<Vec<u8>> {
+    let blobs = open_store(data_dir).await.blobs;
+    let sha = sha.to_string();
+    tokio::task::spawn_blocking(move || blobs.get(&sha))
+        .await
+        .expect("blob read task")
+}
+
 pub struct Server {
     pub child: Child,
     pub base: String,
@@ -18,7 +95,7 @@ pub struct Server {
 
 /// Create an API key for `tenant` in `data_dir` with the CLI.
 pub fn api_key(data_dir: &Path, tenant: &str) -> String {
-    let out = Command::new(BIN)
+    let out = rigcal(data_dir)
         .args(["apikey", "create", "--tenant", tenant, "--data-dir"])
         .arg(data_dir)
         .output()
@@ -35,7 +112,7 @@ impl Server {
     /// Start `rigcal serve --bind 127.0.0.1:0 --data-dir DIR ARGS...` and wait for its
     /// "listening" line.
     pub fn start(data_dir: &Path, args: &[&str]) -> Server {
-        let mut child = Command::new(BIN)
+        let mut child = rigcal(data_dir)
             .args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
             .arg(data_dir)
             .args(args)
@@ -334,4 +411,31 @@ pub async fn get_json(c: &reqwest::Client, s: &Server, path: &str) -> Value {
     let r = c.get(s.url(path)).send().await.unwrap();
     assert_eq!(r.status(), 200, "GET {path}");
     r.json().await.unwrap()
+}
+
+/// (results, terminal status events) of job `id`: (1, 1) when it finished exactly once.
+pub async fn finished_once(store: &rigcal_service::store::Store, id: &str) -> (i64, i64) {
+    use rigcal_service::store::db::sql;
+    let count = |q| async move {
+        store
+            .db
+            .fetch_one(sql(q).bind(id))
+            .await
+            .unwrap()
+            .get::<i64>(0)
+            .unwrap()
+    };
+    (
+        count("SELECT COUNT(*) FROM results WHERE job_id = $1").await,
+        count("SELECT COUNT(*) FROM job_events WHERE job_id = $1 AND kind = 'status' AND status IN ('succeeded','degraded','failed','cancelled')").await,
+    )
+}
+
+/// A result document without its timings, which differ between two runs of the same
+/// computation.
+pub fn without_timings(mut v: Value) -> Value {
+    if let Some(o) = v.as_object_mut() {
+        o.remove("stages");
+    }
+    v
 }

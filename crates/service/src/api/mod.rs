@@ -17,7 +17,7 @@ mod vehicles;
 
 use crate::jobs::queue::Queue;
 use crate::jobs::worker::{self, WorkerConfig};
-use crate::store::Store;
+use crate::store::{Location, Store};
 use crate::telemetry::Metrics;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request, State};
 use axum::middleware::{self, Next};
@@ -25,7 +25,6 @@ use axum::response::Response;
 use axum::routing::{get, post, put};
 use axum::Router;
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -33,7 +32,8 @@ use std::time::{Duration, Instant};
 #[derive(Clone, Debug)]
 pub struct ServeConfig {
     pub bind: String,
-    pub data_dir: PathBuf,
+    /// The database, the blob store and the local working directory.
+    pub store: Location,
     pub insecure_no_auth: bool,
     /// The embedded workers (`workers: 0` for an API-only replica). Its
     /// `max_image_pixels` is also the upload's limit, so an image the API accepts is
@@ -59,7 +59,7 @@ impl Default for ServeConfig {
     fn default() -> Self {
         Self {
             bind: "127.0.0.1:8080".into(),
-            data_dir: "rigcal-data".into(),
+            store: Location::new(std::path::Path::new("rigcal-data"), None, None),
             insecure_no_auth: false,
             worker: WorkerConfig::default(),
             max_attempts: 3,
@@ -218,15 +218,20 @@ pub async fn start(
     if config.insecure_no_auth {
         eprintln!("WARNING: --insecure-no-auth: every request acts as tenant \"local\" without an API key. Never expose this server beyond this machine.");
     }
-    let store = Store::open(&config.data_dir).await?;
+    let store = Store::connect(&config.store).await?;
     let metrics = Arc::new(Metrics::default());
-    worker::spawn(store.clone(), metrics.clone(), config.worker.clone());
+    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
+    let workers = worker::spawn(
+        store.clone(),
+        metrics.clone(),
+        config.worker.clone(),
+        stop_rx.clone(),
+    );
     let listener = tokio::net::TcpListener::bind(&config.bind)
         .await
         .map_err(|e| anyhow::anyhow!("binding {}: {e}", config.bind))?;
     let addr: SocketAddr = listener.local_addr()?;
-    let (stop_tx, stop_rx) = tokio::sync::watch::channel(false);
-    let queue = Queue::new(store.pool.clone());
+    let queue = Queue::new(store.db.clone());
     let state = AppState {
         archive_slots: Arc::new(tokio::sync::Semaphore::new(config.max_concurrent_archives)),
         events: events::EventHub::start(
@@ -246,6 +251,16 @@ pub async fn start(
         crate::signals::shutdown_signal().await;
         let _ = stop_tx.send(true);
     });
+    // The embedded workers saw the same stop: they finish or give back their jobs
+    // before the process ends.
+    let server = async move {
+        let served = server.await;
+        for w in workers {
+            // A worker task that panicked has nothing left to give back.
+            let _ = w.await;
+        }
+        served
+    };
     Ok((addr, server))
 }
 

@@ -3,6 +3,7 @@
 
 use super::error::ApiError;
 use super::AppState;
+use crate::store::db::sql;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::{Html, IntoResponse, Response};
@@ -17,19 +18,21 @@ pub async fn healthz() -> Json<Value> {
     Json(json!({"status": "ok", "version": env!("CARGO_PKG_VERSION")}))
 }
 
-/// Ready when the database answers and the blob directory is writable.
+/// Ready when the database answers and the blob store is reachable and writable.
 pub async fn readyz(State(state): State<AppState>) -> Result<Json<Value>, ApiError> {
     let unavailable = |d: String| ApiError::new(StatusCode::SERVICE_UNAVAILABLE, "not-ready", d);
-    sqlx::query("SELECT 1")
-        .execute(&state.store.pool)
+    state
+        .store
+        .db
+        .execute(sql("SELECT 1"))
         .await
         .map_err(|e| unavailable(format!("database: {e}")))?;
-    let dir = state.config.data_dir.join("blobs").join("tmp");
-    let probe = dir.join(format!("ready-{}", uuid::Uuid::new_v4().simple()));
-    tokio::fs::write(&probe, b"ok")
+    state
+        .store
+        .blobs
+        .probe()
         .await
-        .map_err(|e| unavailable(format!("blob directory {}: {e}", dir.display())))?;
-    let _ = tokio::fs::remove_file(&probe).await;
+        .map_err(|e| unavailable(format!("blob store {}: {e}", state.store.blobs.describe())))?;
     Ok(Json(json!({"status": "ready"})))
 }
 

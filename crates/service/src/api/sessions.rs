@@ -88,12 +88,19 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
     let all = image_slots(session);
     // Received once but whose bytes are gone from the blob store (a lost disk, a removed
     // directory): missing again, and said so, rather than "received".
+    let gone = futures::future::try_join_all(all.iter().map(|s| async {
+        match have.get(&(s.camera.clone(), s.frame)) {
+            Some(i) => Ok(!store.blobs.contains(&i.sha256).await?),
+            None => Ok::<bool, std::io::Error>(false),
+        }
+    }))
+    .await
+    .map_err(ApiError::storage)?;
     let lost: Vec<&ImageSlot> = all
         .iter()
-        .filter(|s| {
-            have.get(&(s.camera.clone(), s.frame))
-                .is_some_and(|i| !store.blobs.contains(&i.sha256))
-        })
+        .zip(gone)
+        .filter(|(_, g)| *g)
+        .map(|(s, _)| s)
         .collect();
     let missing: Vec<&ImageSlot> = all
         .iter()

@@ -7,10 +7,11 @@
 //! Everything else (database or blob I/O, a panic in the engine) is treated as transient
 //! and retried with exponential backoff up to the job's attempt limit.
 
-use super::queue::{FailOutcome, JobRow, JobStatus, Queue};
+use super::queue::{FailOutcome, JobRow, JobStatus, Queue, JOBS_CHANNEL};
 use super::JobOptions;
 use crate::store::blob::BlobStore;
-use crate::store::Store;
+use crate::store::db::Db;
+use crate::store::{Location, Store};
 use crate::telemetry::Metrics;
 use rigcal_core::session::parse_session;
 use rigcal_core::session::ImageSlot;
@@ -20,7 +21,7 @@ use serde_json::json;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
-use tokio::sync::mpsc;
+use tokio::sync::{mpsc, watch};
 
 #[derive(Clone, Debug)]
 pub struct WorkerConfig {
@@ -47,38 +48,129 @@ impl Default for WorkerConfig {
     }
 }
 
-/// Start `cfg.workers` workers on the current runtime. They run until the process ends.
-pub fn spawn(store: Store, metrics: Arc<Metrics>, cfg: WorkerConfig) {
+/// Start `cfg.workers` workers on the current runtime. They run until `stop` turns
+/// true; then each stops claiming, lets its job reach the next stage boundary (or gives
+/// it back, see [`run_job`]) and ends. Await the handles to let them finish.
+pub fn spawn(
+    store: Store,
+    metrics: Arc<Metrics>,
+    cfg: WorkerConfig,
+    stop: watch::Receiver<bool>,
+) -> Vec<tokio::task::JoinHandle<()>> {
     // The host only labels the worker in the queue's lease records (`claimed_by`); a
     // machine without HOSTNAME is labelled "local" rather than refused.
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
-    for i in 0..cfg.workers {
-        let name = format!(
-            "{host}/{}/{i}/{}",
-            std::process::id(),
-            uuid::Uuid::new_v4().simple()
-        );
-        let (store, metrics, cfg) = (store.clone(), metrics.clone(), cfg.clone());
-        tokio::spawn(async move { worker_loop(name, store, metrics, cfg).await });
+    let wake = Wakeup::start(&store, stop.clone());
+    (0..cfg.workers)
+        .map(|i| {
+            let name = format!(
+                "{host}/{}/{i}/{}",
+                std::process::id(),
+                uuid::Uuid::new_v4().simple()
+            );
+            let (store, metrics, cfg) = (store.clone(), metrics.clone(), cfg.clone());
+            let (wake, stop) = (wake.clone(), stop.clone());
+            tokio::spawn(async move { worker_loop(name, store, metrics, cfg, wake, stop).await })
+        })
+        .collect()
+}
+
+/// What wakes an idle worker before its next poll: on PostgreSQL, a `NOTIFY` of a new
+/// or released job from any process on any machine. Polling stays (slower while a
+/// listener is connected) because notifications sent while it reconnects are lost.
+#[derive(Clone)]
+struct Wakeup {
+    notify: Arc<tokio::sync::Notify>,
+    listening: Arc<AtomicBool>,
+}
+
+impl Wakeup {
+    fn start(store: &Store, mut stop: watch::Receiver<bool>) -> Wakeup {
+        let wake = Wakeup {
+            notify: Arc::new(tokio::sync::Notify::new()),
+            listening: Arc::new(AtomicBool::new(false)),
+        };
+        let Db::Postgres(pool) = store.db.clone() else {
+            return wake;
+        };
+        let w = wake.clone();
+        tokio::spawn(async move {
+            loop {
+                let listener = async {
+                    let mut l = sqlx::postgres::PgListener::connect_with(&pool).await?;
+                    l.listen(JOBS_CHANNEL).await?;
+                    Ok::<_, sqlx::Error>(l)
+                };
+                let mut l = match listener.await {
+                    Ok(l) => l,
+                    Err(e) => {
+                        tracing::warn!("job notifications unavailable, polling: {e}");
+                        tokio::select! {
+                            _ = tokio::time::sleep(Duration::from_secs(5)) => continue,
+                            _ = stop.changed() => return,
+                        }
+                    }
+                };
+                w.listening.store(true, Ordering::SeqCst);
+                // Whatever was announced while not listening: look now.
+                w.notify.notify_waiters();
+                loop {
+                    tokio::select! {
+                        m = l.recv() => match m {
+                            Ok(_) => w.notify.notify_waiters(),
+                            Err(e) => {
+                                tracing::warn!("job notifications lost, reconnecting: {e}");
+                                break;
+                            }
+                        },
+                        _ = stop.changed() => return,
+                    }
+                }
+                w.listening.store(false, Ordering::SeqCst);
+            }
+        });
+        wake
+    }
+
+    /// Sleep until woken, the poll interval passes, or `stop` changes.
+    async fn idle(&self, poll: Duration, stop: &mut watch::Receiver<bool>) {
+        let poll = if self.listening.load(Ordering::SeqCst) {
+            poll * 10
+        } else {
+            poll
+        };
+        tokio::select! {
+            _ = self.notify.notified() => {}
+            _ = tokio::time::sleep(poll) => {}
+            _ = stop.changed() => {}
+        }
     }
 }
 
-async fn worker_loop(name: String, store: Store, metrics: Arc<Metrics>, cfg: WorkerConfig) {
-    let queue = Queue::new(store.pool.clone());
+async fn worker_loop(
+    name: String,
+    store: Store,
+    metrics: Arc<Metrics>,
+    cfg: WorkerConfig,
+    wake: Wakeup,
+    mut stop: watch::Receiver<bool>,
+) {
+    let queue = Queue::new(store.db.clone());
     let lease_ms = cfg.lease.as_millis() as i64;
-    loop {
+    while !*stop.borrow() {
         match queue.claim(&name, lease_ms).await {
             Ok(Some(job)) => {
                 tracing::info!(job = %job.id, attempt = job.attempts, worker = %name, "claimed");
-                run_job(&name, &store, &queue, &metrics, &cfg, job).await;
+                run_job(&name, &store, &queue, &metrics, &cfg, job, stop.clone()).await;
             }
-            Ok(None) => tokio::time::sleep(cfg.poll).await,
+            Ok(None) => wake.idle(cfg.poll, &mut stop).await,
             Err(e) => {
                 tracing::warn!(worker = %name, "claim failed: {e}");
-                tokio::time::sleep(cfg.poll * 5).await;
+                wake.idle(cfg.poll * 5, &mut stop).await;
             }
         }
     }
+    tracing::info!(worker = %name, "stopped");
 }
 
 /// Sends stage changes to the async side and reads the cancel flag.
@@ -105,6 +197,7 @@ async fn run_job(
     metrics: &Metrics,
     cfg: &WorkerConfig,
     job: JobRow,
+    mut shutdown: watch::Receiver<bool>,
 ) {
     let backoff = cfg.backoff.as_millis() as i64;
     if job.attempts > job.max_attempts {
@@ -218,16 +311,44 @@ async fn run_job(
             }
         }
     };
+    // A shutdown (SIGTERM) stops the pipeline at its next stage boundary, like a cancel;
+    // the job is then given back, not cancelled. A stage that does not end within half
+    // the lease is abandoned: the job is given back at once and this process exits
+    // (its blocking thread with it), well before the lease would have expired.
+    let mut stopping: Option<tokio::time::Instant> = None;
+    let mut cancel_requested = false;
+    let give_back = |why: &'static str| {
+        let (queue, id) = (queue.clone(), job.id.clone());
+        async move {
+            match queue.release(&id, name, why).await {
+                Ok(true) => tracing::info!(job = %id, "given back: {why}"),
+                Ok(false) => tracing::warn!(job = %id, "lease lost before it was given back"),
+                Err(e) => {
+                    tracing::warn!(job = %id, "giving the job back failed (its lease will expire): {e}")
+                }
+            }
+        }
+    };
     let outcome = loop {
+        let deadline = stopping.unwrap_or_else(tokio::time::Instant::now);
         tokio::select! {
             // Stage reports first: a fast solve must not finish the job before the
             // stages it went through are recorded.
             biased;
             Some((stage, fraction)) = rx.recv() => record(stage, fraction, &mut current).await,
             r = &mut solve => break r,
+            _ = shutdown.changed(), if stopping.is_none() => {
+                tracing::info!(job = %job.id, "shutting down: stopping at the next stage");
+                stopping = Some(tokio::time::Instant::now() + cfg.lease / 2);
+                stop.store(true, Ordering::SeqCst);
+            }
+            _ = tokio::time::sleep_until(deadline), if stopping.is_some() => {
+                give_back("worker shut down mid-stage").await;
+                return;
+            }
             _ = beat.tick() => {
                 match queue.heartbeat(&job.id, name, lease_ms).await {
-                    Ok(Some(cancel)) => if cancel { stop.store(true, Ordering::SeqCst) },
+                    Ok(Some(cancel)) => if cancel { cancel_requested = true; stop.store(true, Ordering::SeqCst) },
                     Ok(None) => { lost.store(true, Ordering::SeqCst); stop.store(true, Ordering::SeqCst); }
                     Err(e) => tracing::warn!(job = %job.id, "heartbeat failed: {e}"),
                 }
@@ -297,6 +418,9 @@ async fn run_job(
                 }
             }
         }
+        Ok(Ok(Err(Cancelled(_)))) if stopping.is_some() && !cancel_requested => {
+            give_back("worker shut down").await;
+        }
         Ok(Ok(Err(Cancelled(stage)))) => {
             if let Ok(true) = queue.mark_cancelled(&job.id, name, &stage).await {
                 metrics.job_finished("cancelled");
@@ -325,17 +449,24 @@ async fn run_job(
     }
 }
 
-/// `rigcal worker`: workers only, against the database in `data_dir`, until a signal.
-pub async fn run_standalone(data_dir: &std::path::Path, cfg: WorkerConfig) -> anyhow::Result<()> {
-    let store = Store::open(data_dir).await?;
+/// `rigcal worker`: workers only, against the store at `at`, until SIGINT or SIGTERM;
+/// then they stop claiming and finish or give back their jobs before the process ends.
+pub async fn run_standalone(at: &Location, cfg: WorkerConfig) -> anyhow::Result<()> {
+    let store = Store::connect(at).await?;
     let metrics = Arc::new(Metrics::default());
     eprintln!(
         "rigcal worker: {} worker(s) on {}",
         cfg.workers,
-        data_dir.display()
+        at.describe()
     );
-    spawn(store, metrics, cfg);
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let handles = spawn(store, metrics, cfg, stop_rx);
     crate::signals::shutdown_signal().await;
+    let _ = stop_tx.send(true);
+    for h in handles {
+        // A worker task that panicked has nothing left to give back.
+        let _ = h.await;
+    }
     Ok(())
 }
 

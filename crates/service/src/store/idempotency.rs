@@ -1,7 +1,7 @@
 //! Idempotency-Key records: the first successful answer to a POST under a client's key.
 
+use super::db::sql;
 use super::Store;
-use sqlx::Row;
 
 /// How long a key is remembered.
 pub const KEY_LIFETIME_MS: i64 = 24 * 3600 * 1000;
@@ -40,37 +40,34 @@ impl Store {
         route: &str,
         now: i64,
     ) -> sqlx::Result<Claim> {
-        let mut tx = self.pool.begin().await?;
-        sqlx::query("DELETE FROM idempotency_keys WHERE created_at < ? OR (fingerprint IS NULL AND created_at < ?)")
+        let mut tx = self.db.begin().await?;
+        tx.execute(sql("DELETE FROM idempotency_keys WHERE created_at < $1 OR (fingerprint IS NULL AND created_at < $2)")
             .bind(now - KEY_LIFETIME_MS)
-            .bind(now - IN_FLIGHT_MS)
-            .execute(&mut *tx)
+            .bind(now - IN_FLIGHT_MS))
             .await?;
-        let inserted = sqlx::query("INSERT INTO idempotency_keys (tenant_id, key, route, created_at) VALUES (?, ?, ?, ?) ON CONFLICT DO NOTHING")
+        let inserted = tx.execute(sql("INSERT INTO idempotency_keys (tenant_id, key, route, created_at) VALUES ($1, $2, $3, $4) ON CONFLICT DO NOTHING")
             .bind(tenant_id)
             .bind(key)
             .bind(route)
-            .bind(now)
-            .execute(&mut *tx)
-            .await?
-            .rows_affected();
+            .bind(now))
+            .await?;
         let claim = if inserted == 1 {
             Claim::Fresh
         } else {
-            let r = sqlx::query("SELECT route, fingerprint, status, content_type, location, body FROM idempotency_keys WHERE tenant_id = ? AND key = ?")
+            let r = tx.fetch_one(sql("SELECT route, fingerprint, status, content_type, location, body FROM idempotency_keys WHERE tenant_id = $1 AND key = $2")
                 .bind(tenant_id)
-                .bind(key)
-                .fetch_one(&mut *tx)
+                .bind(key))
                 .await?;
-            match r.get::<Option<String>, _>("fingerprint") {
+            match r.get::<Option<String>>("fingerprint")? {
                 None => Claim::InFlight,
                 Some(fingerprint) => Claim::Answered(StoredAnswer {
-                    route: r.get("route"),
+                    route: r.get("route")?,
                     fingerprint,
-                    status: r.get::<i64, _>("status") as u16,
-                    content_type: r.get("content_type"),
-                    location: r.get("location"),
-                    body: r.get("body"),
+                    // Out of range reads as 0, which the replay reports as a corrupt record.
+                    status: u16::try_from(r.get::<i64>("status")?).unwrap_or(0),
+                    content_type: r.get("content_type")?,
+                    location: r.get("location")?,
+                    body: r.get("body")?,
                 }),
             }
         };
@@ -85,15 +82,14 @@ impl Store {
         key: &str,
         answer: &StoredAnswer,
     ) -> sqlx::Result<()> {
-        sqlx::query("UPDATE idempotency_keys SET fingerprint = ?, status = ?, content_type = ?, location = ?, body = ? WHERE tenant_id = ? AND key = ? AND fingerprint IS NULL")
+        self.db.execute(sql("UPDATE idempotency_keys SET fingerprint = $1, status = $2, content_type = $3, location = $4, body = $5 WHERE tenant_id = $6 AND key = $7 AND fingerprint IS NULL")
             .bind(&answer.fingerprint)
             .bind(answer.status as i64)
             .bind(&answer.content_type)
             .bind(&answer.location)
             .bind(&answer.body)
             .bind(tenant_id)
-            .bind(key)
-            .execute(&self.pool)
+            .bind(key))
             .await?;
         Ok(())
     }
@@ -101,12 +97,9 @@ impl Store {
     /// Release `key` after a request that created nothing (an error): the client may
     /// retry under it.
     pub async fn idempotency_release(&self, tenant_id: &str, key: &str) -> sqlx::Result<()> {
-        sqlx::query(
-            "DELETE FROM idempotency_keys WHERE tenant_id = ? AND key = ? AND fingerprint IS NULL",
-        )
+        self.db.execute(sql("DELETE FROM idempotency_keys WHERE tenant_id = $1 AND key = $2 AND fingerprint IS NULL")
         .bind(tenant_id)
-        .bind(key)
-        .execute(&self.pool)
+        .bind(key))
         .await?;
         Ok(())
     }

@@ -1,23 +1,19 @@
-//! Persistent state: SQLite through sqlx (schema only through `migrations/`) and the
-//! content-addressed blob directory for image bytes.
+//! Persistent state: the database ([`db::Db`], SQLite or PostgreSQL through sqlx, schema
+//! only through `migrations/<backend>/`) and the content-addressed blob store for image
+//! bytes ([`BlobStore`], a local directory or S3-compatible object storage).
 //!
 //! Queries are checked at run time, not by sqlx's compile-time macros: a fresh clone
 //! builds without a database or a `.sqlx/` cache, and the integration tests exercise
-//! every query against a real database.
+//! every query against a real database of each backend.
 
 pub mod blob;
+pub mod db;
 pub mod idempotency;
 
-use anyhow::Context;
 pub use blob::BlobStore;
+use db::{sql, Db, Rec};
 use sha2::Digest;
-use sqlx::sqlite::{
-    SqliteConnectOptions, SqliteJournalMode, SqlitePool, SqlitePoolOptions, SqliteSynchronous,
-};
-use sqlx::Row;
 use std::path::Path;
-use std::str::FromStr;
-use std::time::Duration;
 
 /// Milliseconds since the Unix epoch.
 pub fn now_ms() -> i64 {
@@ -43,8 +39,42 @@ pub fn parse_rfc3339(s: &str) -> Option<i64> {
 
 #[derive(Clone)]
 pub struct Store {
-    pub pool: SqlitePool,
+    pub db: Db,
     pub blobs: BlobStore,
+}
+
+/// Where the store lives: a database URL and a blob URL. The embedded default is a
+/// data directory's `rigcal.db` and `blobs/`.
+#[derive(Clone, Debug)]
+pub struct Location {
+    /// `sqlite://PATH` or `postgres://…`.
+    pub database_url: String,
+    /// `file://DIR` or `s3://BUCKET/PREFIX`.
+    pub blob_url: String,
+    /// Local working space (upload spools, bundles being written): always on this host.
+    pub data_dir: std::path::PathBuf,
+}
+
+impl Location {
+    /// The embedded default under `data_dir`, with either URL overridden when given.
+    pub fn new(data_dir: &Path, database_url: Option<&str>, blob_url: Option<&str>) -> Location {
+        Location {
+            database_url: database_url.map_or_else(
+                || format!("sqlite://{}", data_dir.join("rigcal.db").display()),
+                str::to_string,
+            ),
+            blob_url: blob_url.map_or_else(
+                || format!("file://{}", data_dir.join("blobs").display()),
+                str::to_string,
+            ),
+            data_dir: data_dir.to_path_buf(),
+        }
+    }
+
+    /// Where the store is, for a log line (passwords hidden).
+    pub fn describe(&self) -> String {
+        format!("{} and {}", db::redact(&self.database_url), self.blob_url)
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -88,26 +118,38 @@ pub struct ImageRow {
     pub height: i64,
 }
 
-fn tenant_from(row: &sqlx::sqlite::SqliteRow) -> Tenant {
-    Tenant {
-        id: row.get("id"),
-        name: row.get("name"),
-        max_rms_px: row.get("max_rms_px"),
-        max_sigma_translation_m: row.get("max_sigma_translation_m"),
-        max_sigma_rotation_deg: row.get("max_sigma_rotation_deg"),
-    }
+fn tenant_from(row: &Rec) -> sqlx::Result<Tenant> {
+    Ok(Tenant {
+        id: row.get("id")?,
+        name: row.get("name")?,
+        max_rms_px: row.get("max_rms_px")?,
+        max_sigma_translation_m: row.get("max_sigma_translation_m")?,
+        max_sigma_rotation_deg: row.get("max_sigma_rotation_deg")?,
+    })
 }
 
-fn session_from(row: &sqlx::sqlite::SqliteRow) -> SessionRow {
-    SessionRow {
-        id: row.get("id"),
-        tenant_id: row.get("tenant_id"),
-        vehicle_id: row.get("vehicle_id"),
-        method: row.get("method"),
-        manifest: row.get("manifest"),
-        capture_check: row.get("capture_check"),
-        created_at: row.get("created_at"),
-    }
+fn session_from(row: &Rec) -> sqlx::Result<SessionRow> {
+    Ok(SessionRow {
+        id: row.get("id")?,
+        tenant_id: row.get("tenant_id")?,
+        vehicle_id: row.get("vehicle_id")?,
+        method: row.get("method")?,
+        manifest: row.get("manifest")?,
+        capture_check: row.get("capture_check")?,
+        created_at: row.get("created_at")?,
+    })
+}
+
+fn image_from(r: &Rec) -> sqlx::Result<ImageRow> {
+    Ok(ImageRow {
+        camera: r.get("camera")?,
+        frame: r.get("frame")?,
+        sha256: r.get("sha256")?,
+        bytes: r.get("bytes")?,
+        format: r.get("format")?,
+        width: r.get("width")?,
+        height: r.get("height")?,
+    })
 }
 
 /// SHA-256 of an API key, hex: what is stored and looked up.
@@ -124,55 +166,38 @@ impl Store {
         max_sigma_translation_m: f64,
         max_sigma_rotation_deg: f64,
     ) -> sqlx::Result<()> {
-        sqlx::query("UPDATE tenants SET max_rms_px = ?, max_sigma_translation_m = ?, max_sigma_rotation_deg = ? WHERE id = ?")
+        self.db.execute(sql("UPDATE tenants SET max_rms_px = $1, max_sigma_translation_m = $2, max_sigma_rotation_deg = $3 WHERE id = $4")
             .bind(max_rms_px)
             .bind(max_sigma_translation_m)
             .bind(max_sigma_rotation_deg)
-            .bind(tenant_id)
-            .execute(&self.pool)
+            .bind(tenant_id))
             .await?;
         Ok(())
     }
 
-    /// Open (creating if needed) the database and blob directory under `data_dir`, and
-    /// apply pending migrations. WAL, foreign keys, a busy timeout, synchronous=FULL so an
-    /// acknowledged write survives a crash.
+    /// The embedded default: the database and blob directory under `data_dir`.
     pub async fn open(data_dir: &Path) -> anyhow::Result<Store> {
-        std::fs::create_dir_all(data_dir)
-            .with_context(|| format!("creating data directory {}", data_dir.display()))?;
-        let db = data_dir.join("rigcal.db");
-        let opts = SqliteConnectOptions::from_str(&format!("sqlite://{}", db.display()))?
-            .create_if_missing(true)
-            .journal_mode(SqliteJournalMode::Wal)
-            .synchronous(SqliteSynchronous::Full)
-            .foreign_keys(true)
-            .busy_timeout(Duration::from_secs(10));
-        let pool = SqlitePoolOptions::new()
-            .max_connections(8)
-            .connect_with(opts)
-            .await
-            .with_context(|| format!("opening database {}", db.display()))?;
-        sqlx::migrate!("../../migrations")
-            .run(&pool)
-            .await
-            .context("applying migrations")?;
-        let blobs = BlobStore::open(&data_dir.join("blobs"))
-            .with_context(|| format!("opening blob directory in {}", data_dir.display()))?;
-        Ok(Store { pool, blobs })
+        Store::connect(&Location::new(data_dir, None, None)).await
+    }
+
+    /// Connect to the database (applying pending migrations) and the blob store.
+    pub async fn connect(at: &Location) -> anyhow::Result<Store> {
+        let db = Db::connect(&at.database_url).await?;
+        let blobs = BlobStore::open(&at.blob_url, &at.data_dir).await?;
+        Ok(Store { db, blobs })
     }
 
     pub async fn ensure_tenant(&self, name: &str) -> sqlx::Result<Tenant> {
-        sqlx::query("INSERT INTO tenants (id, name, created_at) VALUES (?, ?, ?) ON CONFLICT(name) DO NOTHING")
+        self.db.execute(sql("INSERT INTO tenants (id, name, created_at) VALUES ($1, $2, $3) ON CONFLICT(name) DO NOTHING")
             .bind(uuid::Uuid::new_v4().to_string())
             .bind(name)
-            .bind(now_ms())
-            .execute(&self.pool)
+            .bind(now_ms()))
             .await?;
-        let row = sqlx::query("SELECT * FROM tenants WHERE name = ?")
-            .bind(name)
-            .fetch_one(&self.pool)
+        let row = self
+            .db
+            .fetch_one(sql("SELECT * FROM tenants WHERE name = $1").bind(name))
             .await?;
-        Ok(tenant_from(&row))
+        tenant_from(&row)
     }
 
     /// Create an API key for `tenant` (created if new). Returns the key: it is shown once
@@ -184,15 +209,12 @@ impl Store {
             uuid::Uuid::new_v4().simple(),
             uuid::Uuid::new_v4().simple()
         );
-        sqlx::query(
-            "INSERT INTO api_keys (id, tenant_id, key_hash, prefix, created_at) VALUES (?, ?, ?, ?, ?)",
-        )
+        self.db.execute(sql("INSERT INTO api_keys (id, tenant_id, key_hash, prefix, created_at) VALUES ($1, $2, $3, $4, $5)")
         .bind(uuid::Uuid::new_v4().to_string())
         .bind(&t.id)
         .bind(key_hash(&secret))
         .bind(&secret[..7])
-        .bind(now_ms())
-        .execute(&self.pool)
+        .bind(now_ms()))
         .await?;
         Ok(secret)
     }
@@ -200,50 +222,48 @@ impl Store {
     /// API keys (never the secrets: id, tenant, the first characters, dates), oldest
     /// first, of one tenant or all.
     pub async fn api_keys(&self, tenant: Option<&str>) -> sqlx::Result<Vec<ApiKeyRow>> {
-        let rows = sqlx::query("SELECT k.id, t.name, k.prefix, k.created_at, k.revoked_at FROM api_keys k JOIN tenants t ON t.id = k.tenant_id WHERE ?1 IS NULL OR t.name = ?1 ORDER BY k.created_at, k.id")
-            .bind(tenant)
-            .fetch_all(&self.pool)
+        let rows = self.db.fetch_all(sql("SELECT k.id, t.name, k.prefix, k.created_at, k.revoked_at FROM api_keys k JOIN tenants t ON t.id = k.tenant_id WHERE $1 IS NULL OR t.name = $1 ORDER BY k.created_at, k.id")
+            .bind(tenant))
             .await?;
-        Ok(rows
-            .iter()
-            .map(|r| ApiKeyRow {
-                id: r.get("id"),
-                tenant: r.get("name"),
-                prefix: r.get("prefix"),
-                created_at: r.get("created_at"),
-                revoked_at: r.get("revoked_at"),
+        rows.iter()
+            .map(|r| {
+                Ok(ApiKeyRow {
+                    id: r.get("id")?,
+                    tenant: r.get("name")?,
+                    prefix: r.get("prefix")?,
+                    created_at: r.get("created_at")?,
+                    revoked_at: r.get("revoked_at")?,
+                })
             })
-            .collect())
+            .collect()
     }
 
     /// Revoke the key `id`; `false` if there is no such key or it was revoked already.
     pub async fn revoke_api_key(&self, id: &str) -> sqlx::Result<bool> {
-        let n =
-            sqlx::query("UPDATE api_keys SET revoked_at = ? WHERE id = ? AND revoked_at IS NULL")
-                .bind(now_ms())
-                .bind(id)
-                .execute(&self.pool)
-                .await?
-                .rows_affected();
+        let n = self
+            .db
+            .execute(
+                sql("UPDATE api_keys SET revoked_at = $1 WHERE id = $2 AND revoked_at IS NULL")
+                    .bind(now_ms())
+                    .bind(id),
+            )
+            .await?;
         Ok(n == 1)
     }
 
     pub async fn tenant_for_key(&self, key: &str) -> sqlx::Result<Option<Tenant>> {
-        let row = sqlx::query(
-            "SELECT t.* FROM api_keys k JOIN tenants t ON t.id = k.tenant_id WHERE k.key_hash = ? AND k.revoked_at IS NULL",
-        )
-        .bind(key_hash(key))
-        .fetch_optional(&self.pool)
+        let row = self.db.fetch_optional(sql("SELECT t.* FROM api_keys k JOIN tenants t ON t.id = k.tenant_id WHERE k.key_hash = $1 AND k.revoked_at IS NULL")
+        .bind(key_hash(key)))
         .await?;
-        Ok(row.as_ref().map(tenant_from))
+        row.as_ref().map(tenant_from).transpose()
     }
 
     pub async fn tenant(&self, id: &str) -> sqlx::Result<Option<Tenant>> {
-        let row = sqlx::query("SELECT * FROM tenants WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
+        let row = self
+            .db
+            .fetch_optional(sql("SELECT * FROM tenants WHERE id = $1").bind(id))
             .await?;
-        Ok(row.as_ref().map(tenant_from))
+        row.as_ref().map(tenant_from).transpose()
     }
 
     pub async fn insert_session(
@@ -263,60 +283,54 @@ impl Store {
             capture_check: capture_check.map(str::to_string),
             created_at: now_ms(),
         };
-        sqlx::query("INSERT INTO sessions (id, tenant_id, vehicle_id, method, manifest, capture_check, created_at) VALUES (?, ?, ?, ?, ?, ?, ?)")
+        self.db.execute(sql("INSERT INTO sessions (id, tenant_id, vehicle_id, method, manifest, capture_check, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7)")
             .bind(&row.id)
             .bind(&row.tenant_id)
             .bind(&row.vehicle_id)
             .bind(&row.method)
             .bind(&row.manifest)
             .bind(&row.capture_check)
-            .bind(row.created_at)
-            .execute(&self.pool)
+            .bind(row.created_at))
             .await?;
         Ok(row)
     }
 
     /// A tenant's session; `None` for a session of another tenant (never revealed).
     pub async fn session(&self, tenant: &Tenant, id: &str) -> sqlx::Result<Option<SessionRow>> {
-        let row = sqlx::query("SELECT * FROM sessions WHERE id = ? AND tenant_id = ?")
-            .bind(id)
-            .bind(&tenant.id)
-            .fetch_optional(&self.pool)
+        let row = self
+            .db
+            .fetch_optional(
+                sql("SELECT * FROM sessions WHERE id = $1 AND tenant_id = $2")
+                    .bind(id)
+                    .bind(&tenant.id),
+            )
             .await?;
-        Ok(row.as_ref().map(session_from))
+        row.as_ref().map(session_from).transpose()
     }
 
     pub async fn session_by_id(&self, id: &str) -> sqlx::Result<Option<SessionRow>> {
-        let row = sqlx::query("SELECT * FROM sessions WHERE id = ?")
-            .bind(id)
-            .fetch_optional(&self.pool)
+        let row = self
+            .db
+            .fetch_optional(sql("SELECT * FROM sessions WHERE id = $1").bind(id))
             .await?;
-        Ok(row.as_ref().map(session_from))
+        row.as_ref().map(session_from).transpose()
     }
 
     pub async fn images(&self, session_id: &str) -> sqlx::Result<Vec<ImageRow>> {
-        let rows = sqlx::query("SELECT * FROM images WHERE session_id = ? ORDER BY frame, camera")
-            .bind(session_id)
-            .fetch_all(&self.pool)
+        let rows = self
+            .db
+            .fetch_all(
+                sql("SELECT * FROM images WHERE session_id = $1 ORDER BY frame, camera")
+                    .bind(session_id),
+            )
             .await?;
-        Ok(rows
-            .iter()
-            .map(|r| ImageRow {
-                camera: r.get("camera"),
-                frame: r.get("frame"),
-                sha256: r.get("sha256"),
-                bytes: r.get("bytes"),
-                format: r.get("format"),
-                width: r.get("width"),
-                height: r.get("height"),
-            })
-            .collect())
+        rows.iter().map(image_from).collect()
     }
 
     /// Record an image whose blob is already durable. Returns the stored row: the new
     /// one, or the one already there (the caller compares hashes for idempotency).
     pub async fn insert_image(&self, session_id: &str, img: &ImageRow) -> sqlx::Result<ImageRow> {
-        sqlx::query("INSERT INTO images (session_id, camera, frame, sha256, bytes, format, width, height, created_at) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?) ON CONFLICT(session_id, camera, frame) DO NOTHING")
+        self.db.execute(sql("INSERT INTO images (session_id, camera, frame, sha256, bytes, format, width, height, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) ON CONFLICT(session_id, camera, frame) DO NOTHING")
             .bind(session_id)
             .bind(&img.camera)
             .bind(img.frame)
@@ -325,31 +339,21 @@ impl Store {
             .bind(&img.format)
             .bind(img.width)
             .bind(img.height)
-            .bind(now_ms())
-            .execute(&self.pool)
+            .bind(now_ms()))
             .await?;
-        let r =
-            sqlx::query("SELECT * FROM images WHERE session_id = ? AND camera = ? AND frame = ?")
-                .bind(session_id)
-                .bind(&img.camera)
-                .bind(img.frame)
-                .fetch_one(&self.pool)
-                .await?;
-        Ok(ImageRow {
-            camera: r.get("camera"),
-            frame: r.get("frame"),
-            sha256: r.get("sha256"),
-            bytes: r.get("bytes"),
-            format: r.get("format"),
-            width: r.get("width"),
-            height: r.get("height"),
-        })
+        let r = self
+            .db
+            .fetch_one(
+                sql("SELECT * FROM images WHERE session_id = $1 AND camera = $2 AND frame = $3")
+                    .bind(session_id)
+                    .bind(&img.camera)
+                    .bind(img.frame),
+            )
+            .await?;
+        image_from(&r)
     }
 
     pub async fn integrity_check(&self) -> sqlx::Result<String> {
-        let row = sqlx::query("PRAGMA integrity_check")
-            .fetch_one(&self.pool)
-            .await?;
-        Ok(row.get(0))
+        self.db.integrity_check().await
     }
 }
