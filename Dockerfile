@@ -1,4 +1,6 @@
-# rigcal: multi-stage build, small runtime image, non-root, data on a volume.
+# rigcal: multi-stage build, small runtime image, non-root, data on a volume. One image
+# for both roles: `serve` (the default command) and `worker` (compose.yaml runs both,
+# and `migrate`, on PostgreSQL and S3 through RIGCAL_DATABASE_URL / RIGCAL_BLOB_URL).
 FROM rust:1-slim-bookworm AS build
 WORKDIR /src
 COPY Cargo.toml Cargo.lock ./
@@ -23,6 +25,7 @@ ENV RIGCAL_BIND=0.0.0.0:8080 \
     RIGCAL_DATA_DIR=/data \
     RIGCAL_WORKERS=2
 EXPOSE 8080
+# The API's health; a worker has no port (compose.yaml disables this check for it).
 HEALTHCHECK --interval=30s --timeout=3s --start-period=10s \
     CMD curl -fsS http://127.0.0.1:8080/healthz || exit 1
 ENTRYPOINT ["rigcal"]

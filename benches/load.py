@@ -6,9 +6,11 @@
 2. 50 concurrent uploads of distinct 2 MB PNG images: all succeed?, wall time, throughput.
 
 Usage: python3 benches/load.py [--bin target/release/rigcal] [--duration 10]
+       python3 benches/load.py --postgres postgres://postgres@127.0.0.1:PORT --s3-bucket B
+(the second on PostgreSQL + S3, after `source scripts/backends.sh; start_backends`).
 Needs wrk (Debian package `wrk`). Standard library only otherwise.
 """
-import argparse, json, os, re, struct, subprocess, sys, tempfile, time, zlib
+import argparse, json, os, re, struct, subprocess, sys, tempfile, time, uuid, zlib
 import urllib.request
 from concurrent.futures import ThreadPoolExecutor
 
@@ -35,12 +37,21 @@ def main():
     ap.add_argument("--bin", default="target/release/rigcal")
     ap.add_argument("--duration", type=int, default=10)
     ap.add_argument("--connections", type=int, default=16)
+    ap.add_argument("--postgres")
+    ap.add_argument("--s3-bucket")
     a = ap.parse_args()
     data = tempfile.mkdtemp(prefix="rigcal-load-")
+    env = dict(os.environ)
+    if a.postgres:
+        name = f"load_{uuid.uuid4().hex[:12]}"
+        subprocess.check_call(["psql", f"{a.postgres}/postgres", "-qXc", f"CREATE DATABASE {name}"])
+        env["RIGCAL_DATABASE_URL"] = f"{a.postgres}/{name}"
+        env["RIGCAL_BLOB_URL"] = f"s3://{a.s3_bucket}/{name}"
+    print("PostgreSQL + S3" if a.postgres else "SQLite + local blobs")
     key = subprocess.check_output([a.bin, "apikey", "create", "--tenant", "load", "--data-dir", data],
-                                  stderr=subprocess.DEVNULL).decode().strip()
+                                  env=env, stderr=subprocess.DEVNULL).decode().strip()
     srv = subprocess.Popen([a.bin, "serve", "--bind", "127.0.0.1:0", "--data-dir", data, "--workers", "1"],
-                           stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
+                           env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     try:
         base = srv.stdout.readline().decode().strip().removeprefix("rigcal listening on ")
         # A long job (16-pose loop, ~6 s) several times over, to keep one core busy.

@@ -100,6 +100,18 @@ pub enum Command {
         #[arg(long)]
         only: Option<String>,
     },
+    /// Claim latency of the job queue with many jobs waiting, on the store given (run it
+    /// against PostgreSQL with --database-url as well as on the SQLite default).
+    Queue {
+        #[command(flatten)]
+        store: super::StoreArgs,
+        /// Jobs queued before the claims are timed.
+        #[arg(long, default_value_t = 10_000, value_parser = RangedU64ValueParser::<usize>::new().range(1..=1_000_000))]
+        queued: usize,
+        /// Claims timed (each completes its job, as a worker would).
+        #[arg(long, default_value_t = 200, value_parser = RangedU64ValueParser::<usize>::new().range(1..=100_000))]
+        claims: usize,
+    },
     /// Wall time, iterations and final cost of the rig bundle adjustment.
     Speed {
         #[arg(long, default_value_t = 6, value_parser = RangedU64ValueParser::<usize>::new().range(2..))]
@@ -118,6 +130,29 @@ pub enum Command {
 
 pub fn run(c: Command) -> Result<i32> {
     match c {
+        Command::Queue {
+            store,
+            queued,
+            claims,
+        } => {
+            let at = store.location();
+            let mut ms = super::runtime()?.block_on(async {
+                let s = rigcal_service::store::Store::connect(&at).await?;
+                rigcal_service::jobs::bench::claim_latency(&s, queued, claims.min(queued)).await
+            })?;
+            ms.sort_by(f64::total_cmp);
+            let q = |p: f64| ms[((ms.len() - 1) as f64 * p).round() as usize];
+            println!(
+                "claim with {queued} queued on {}: {} claims, median {:.2} ms, p90 {:.2} ms, p99 {:.2} ms, max {:.2} ms",
+                at.describe(),
+                ms.len(),
+                q(0.5),
+                q(0.9),
+                q(0.99),
+                q(1.0)
+            );
+            Ok(0)
+        }
         Command::Accuracy {
             preset,
             trials,

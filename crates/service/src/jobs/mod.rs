@@ -2,6 +2,7 @@
 //! runs the pipeline off the async runtime.
 
 pub mod acceptance;
+pub mod bench;
 pub mod queue;
 pub mod worker;
 

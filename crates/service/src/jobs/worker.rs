@@ -117,7 +117,10 @@ impl Wakeup {
                 loop {
                     tokio::select! {
                         m = l.recv() => match m {
-                            Ok(_) => w.notify.notify_waiters(),
+                            // One job, one worker: a permit is kept if none is idle
+                            // yet, so a notice that lands between a worker's empty
+                            // claim and its wait is not lost.
+                            Ok(_) => w.notify.notify_one(),
                             Err(e) => {
                                 tracing::warn!("job notifications lost, reconnecting: {e}");
                                 break;
