@@ -235,3 +235,37 @@ async fn a_worker_told_to_stop_gives_back_or_finishes_its_job_within_the_lease()
         "re-run waited for the lease"
     );
 }
+
+#[tokio::test(flavor = "multi_thread")]
+async fn replicas_migrating_a_new_database_together_apply_each_migration_once() {
+    let dir = tempfile::tempdir().unwrap();
+    let migrators: Vec<_> = (0..4)
+        .map(|_| {
+            rigcal(dir.path())
+                .arg("migrate")
+                .arg("--data-dir")
+                .arg(dir.path())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    for m in migrators {
+        let out = m.wait_with_output().unwrap();
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+    }
+    let store = open_store(dir.path()).await;
+    let applied: Vec<i64> = store
+        .db
+        .fetch_all(sql("SELECT version FROM _sqlx_migrations ORDER BY version"))
+        .await
+        .unwrap()
+        .iter()
+        .map(|r| r.get(0).unwrap())
+        .collect();
+    assert_eq!(applied, vec![1, 2, 3, 4]);
+}

@@ -261,10 +261,23 @@ impl Db {
                     .connect_with(opts)
                     .await
                     .with_context(|| format!("opening database {path}"))?;
+                // sqlx takes no lock on SQLite, so a `serve` and a `worker` started together
+                // on a new file would both apply migration 1; a file lock beside the
+                // database serialises them (the second finds everything applied).
+                let lock_path = format!("{path}.migrate-lock");
+                let lock = tokio::task::spawn_blocking(move || {
+                    let f = std::fs::File::create(&lock_path)
+                        .with_context(|| format!("creating {lock_path}"))?;
+                    f.lock().with_context(|| format!("locking {lock_path}"))?;
+                    anyhow::Ok(f)
+                })
+                .await
+                .context("migration lock task")??;
                 sqlx::migrate!("../../migrations/sqlite")
                     .run(&pool)
                     .await
                     .context("applying migrations")?;
+                drop(lock);
                 Db::Sqlite(pool)
             }
             DatabaseUrl::Postgres(url) => {
