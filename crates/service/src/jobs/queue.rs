@@ -271,7 +271,7 @@ impl Queue {
     ) -> sqlx::Result<JobRow> {
         let id = uuid::Uuid::new_v4().to_string();
         let mut tx = self.db.begin().await?;
-        tx.execute(sql("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, method, options, status, max_attempts, run_after, created_at) VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7, NOW_MS, $8)")
+        let row = tx.fetch_one(sql("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, method, options, status, max_attempts, run_after, created_at) VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7, NOW_MS, $8) RETURNING *")
             .bind(&id)
             .bind(tenant_id)
             .bind(session_id)
@@ -281,6 +281,7 @@ impl Queue {
             .bind(max_attempts)
             .bind(now_ms()))
             .await?;
+        let job = job_from(&row)?;
         if self.db.backend() == Backend::Postgres {
             // Delivered at commit, to every listening worker on any machine.
             tx.execute(sql("SELECT pg_notify($1, $2)").bind(JOBS_CHANNEL).bind(&id))
@@ -288,7 +289,9 @@ impl Queue {
         }
         event(&mut tx, &id, "status", "queued", None, 0.0, None).await?;
         tx.commit().await?;
-        self.get(&id).await?.ok_or(sqlx::Error::RowNotFound)
+        // The job as created, not re-read: a worker woken by the notice may have
+        // claimed it already, and the answer to the submit is "queued".
+        Ok(job)
     }
 
     pub async fn get(&self, id: &str) -> sqlx::Result<Option<JobRow>> {

@@ -111,30 +111,35 @@ impl Sql {
     }
 
     fn sqlite(&self) -> sqlx::query::Query<'static, Sqlite, sqlx::sqlite::SqliteArguments> {
-        let mut q = sqlx::query(self.text_for(Backend::Sqlite));
-        for a in &self.args {
-            q = match a {
-                Arg::Int(v) => q.bind(*v),
-                Arg::Real(v) => q.bind(*v),
-                Arg::Text(v) => q.bind(v.clone()),
-                Arg::Bytes(v) => q.bind(v.clone()),
-            };
-        }
-        q
+        bind_all(sqlx::query(self.text_for(Backend::Sqlite)), &self.args)
     }
 
     fn postgres(&self) -> sqlx::query::Query<'static, Postgres, sqlx::postgres::PgArguments> {
-        let mut q = sqlx::query(self.text_for(Backend::Postgres));
-        for a in &self.args {
-            q = match a {
-                Arg::Int(v) => q.bind(*v),
-                Arg::Real(v) => q.bind(*v),
-                Arg::Text(v) => q.bind(v.clone()),
-                Arg::Bytes(v) => q.bind(v.clone()),
-            };
-        }
-        q
+        bind_all(sqlx::query(self.text_for(Backend::Postgres)), &self.args)
     }
+}
+
+/// Bind `args` in order, on either backend.
+fn bind_all<DB>(
+    mut q: sqlx::query::Query<'static, DB, <DB as sqlx::Database>::Arguments>,
+    args: &[Arg],
+) -> sqlx::query::Query<'static, DB, <DB as sqlx::Database>::Arguments>
+where
+    DB: sqlx::Database,
+    Option<i64>: for<'e> sqlx::Encode<'e, DB> + sqlx::Type<DB>,
+    Option<f64>: for<'e> sqlx::Encode<'e, DB> + sqlx::Type<DB>,
+    Option<String>: for<'e> sqlx::Encode<'e, DB> + sqlx::Type<DB>,
+    Option<Vec<u8>>: for<'e> sqlx::Encode<'e, DB> + sqlx::Type<DB>,
+{
+    for a in args {
+        q = match a {
+            Arg::Int(v) => q.bind(*v),
+            Arg::Real(v) => q.bind(*v),
+            Arg::Text(v) => q.bind(v.clone()),
+            Arg::Bytes(v) => q.bind(v.clone()),
+        };
+    }
+    q
 }
 
 /// A column type both backends decode.
