@@ -37,6 +37,14 @@ enum Command {
     Worker(cli::worker::Args),
     /// Apply the database migrations and exit (a deployment's one-off step).
     Migrate(cli::migrate::Args),
+    /// Upload a capture to a running service and submit its job (--wait: follow it, print
+    /// the summary, write the result and exports, exit 0/3/1 like calibrate).
+    Submit(cli::submit::Args),
+    /// A tenant's jobs on a running service.
+    Jobs {
+        #[command(subcommand)]
+        what: cli::jobs::Command,
+    },
     /// API keys.
     Apikey {
         #[command(subcommand)]
@@ -61,6 +69,8 @@ fn main() {
         Command::Serve(a) => cli::serve::run(a),
         Command::Worker(a) => cli::worker::run(a),
         Command::Migrate(a) => cli::migrate::run(a),
+        Command::Submit(a) => cli::submit::run(a),
+        Command::Jobs { what } => cli::jobs::run(what),
         Command::Apikey { what } => cli::apikey::run(what),
         Command::Demo(a) => cli::demo::run(a),
         Command::Bench { what } => cli::bench::run(what),

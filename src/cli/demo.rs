@@ -109,47 +109,7 @@ async fn serve_sample(data_dir: &Path, bind: &str, exit: bool) -> anyhow::Result
         .json()
         .await?;
     println!("\njob {jid}: {status}");
-    for r in doc["reasons"].as_array().into_iter().flatten() {
-        println!(
-            "  reason {}: {}",
-            r["code"].as_str().unwrap_or(""),
-            r["message"].as_str().unwrap_or("")
-        );
-    }
-    println!(
-        "\n{:<8} {:>26} {:>26} {:>10} {:>10}",
-        "camera", "translation (mm)", "roll/pitch/yaw (deg)", "σt (mm)", "σR (deg)"
-    );
-    for e in doc["extrinsics"].as_array().into_iter().flatten() {
-        let v = |k: &str, i: usize| e[k][i].as_f64().unwrap_or(f64::NAN);
-        let sig = |k: &str, scale: f64| {
-            (0..3)
-                .filter_map(|i| e[k][i].as_f64())
-                .fold(0.0f64, f64::max)
-                * scale
-        };
-        println!(
-            "{:<8} {:>8.1} {:>8.1} {:>8.1} {:>8.3} {:>8.3} {:>8.3} {:>10.2} {:>10.4}",
-            e["camera"].as_str().unwrap_or(""),
-            v("translation", 0) * 1e3,
-            v("translation", 1) * 1e3,
-            v("translation", 2) * 1e3,
-            v("rpy_deg", 0),
-            v("rpy_deg", 1),
-            v("rpy_deg", 2),
-            sig("sigma_translation_m", 1e3),
-            sig("sigma_rotation_deg", 1.0),
-        );
-    }
-    if let Some(r) = doc["residuals"].as_object() {
-        println!(
-            "\nresiduals: RMS {:.3} px, p95 {:.3} px, {} inliers, {} outliers",
-            r["rms"].as_f64().unwrap_or(f64::NAN),
-            r["p95"].as_f64().unwrap_or(f64::NAN),
-            r["inliers"],
-            r["outliers"]
-        );
-    }
+    super::client::print_summary(&doc);
     println!(
         "\ndashboard: {base}/   API reference: {base}/docs   result: {base}/v1/jobs/{jid}/result"
     );

@@ -4,11 +4,14 @@
 pub mod apikey;
 pub mod bench;
 pub mod calibrate;
+pub mod client;
 pub mod compare;
 pub mod demo;
 pub mod detect;
+pub mod jobs;
 pub mod migrate;
 pub mod serve;
+pub mod submit;
 pub mod synth;
 pub mod worker;
 
