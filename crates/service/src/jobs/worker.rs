@@ -465,6 +465,7 @@ pub async fn run_standalone(at: &Location, cfg: WorkerConfig) -> anyhow::Result<
     let (stop_tx, stop_rx) = watch::channel(false);
     let handles = spawn(store, metrics, cfg, stop_rx);
     crate::signals::shutdown_signal().await;
+    // Fails only when every worker has already ended (no receiver left): nothing to stop.
     let _ = stop_tx.send(true);
     for h in handles {
         // A worker task that panicked has nothing left to give back.
