@@ -12,8 +12,10 @@ Usage:
 (the second form after `source scripts/backends.sh; start_backends`, which also exports
 the AWS_* settings; a fresh database is created per row with psql).
 """
-import argparse, json, os, subprocess, sys, tempfile, time, uuid
+import argparse, json, os, subprocess, sys, tempfile, time
 import urllib.request
+
+from backend import add_args, describe, store_env
 
 
 def req(method, url, key, body=None):
@@ -32,12 +34,7 @@ def synth(bin_, preset):
 
 def run(a, workers, manifests):
     data = tempfile.mkdtemp(prefix="rigcal-fleet-")
-    env = dict(os.environ)
-    if a.postgres:
-        name = f"fleet_{uuid.uuid4().hex[:12]}"
-        subprocess.check_call(["psql", f"{a.postgres}/postgres", "-qXc", f"CREATE DATABASE {name}"])
-        env["RIGCAL_DATABASE_URL"] = f"{a.postgres}/{name}"
-        env["RIGCAL_BLOB_URL"] = f"s3://{a.s3_bucket}/{name}"
+    env = store_env(a, "fleet")
     key = subprocess.check_output([a.bin, "apikey", "create", "--tenant", "fleet", "--data-dir", data],
                                   env=env, stderr=subprocess.DEVNULL).decode().strip()
     srv = subprocess.Popen([a.bin, "serve", "--bind", "127.0.0.1:0", "--data-dir", data, "--workers", "0"],
@@ -70,15 +67,11 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--bin", default="target/release/rigcal")
     ap.add_argument("--workers", default="1,2,4")
-    ap.add_argument("--postgres")
-    ap.add_argument("--s3-bucket")
+    add_args(ap)
     a = ap.parse_args()
-    if bool(a.postgres) != bool(a.s3_bucket):
-        sys.exit("--postgres and --s3-bucket go together")
     quick, slow = synth(a.bin, "lebraly-5.1"), synth(a.bin, "car-planar-loop")
     mix = [slow if k % 5 == 0 else quick for k in range(20)]
-    backend = "PostgreSQL + S3" if a.postgres else "SQLite + local blobs"
-    print(f"{backend}: 20 jobs (16 lebraly-5.1, 4 car-planar-loop) submitted at once")
+    print(f"{describe(a)}: 20 jobs (16 lebraly-5.1, 4 car-planar-loop) submitted at once")
     for n in [int(x) for x in a.workers.split(",")]:
         wall, statuses = run(a, n, mix)
         ok = statuses.count("succeeded")

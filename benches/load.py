@@ -10,8 +10,10 @@ Usage: python3 benches/load.py [--bin target/release/rigcal] [--duration 10]
 (the second on PostgreSQL + S3, after `source scripts/backends.sh; start_backends`).
 Needs wrk (Debian package `wrk`). Standard library only otherwise.
 """
-import argparse, json, os, re, struct, subprocess, sys, tempfile, time, uuid, zlib
+import argparse, json, os, re, struct, subprocess, sys, tempfile, time, zlib
 import urllib.request
+
+from backend import add_args, describe, store_env
 from concurrent.futures import ThreadPoolExecutor
 
 
@@ -37,17 +39,11 @@ def main():
     ap.add_argument("--bin", default="target/release/rigcal")
     ap.add_argument("--duration", type=int, default=10)
     ap.add_argument("--connections", type=int, default=16)
-    ap.add_argument("--postgres")
-    ap.add_argument("--s3-bucket")
+    add_args(ap)
     a = ap.parse_args()
     data = tempfile.mkdtemp(prefix="rigcal-load-")
-    env = dict(os.environ)
-    if a.postgres:
-        name = f"load_{uuid.uuid4().hex[:12]}"
-        subprocess.check_call(["psql", f"{a.postgres}/postgres", "-qXc", f"CREATE DATABASE {name}"])
-        env["RIGCAL_DATABASE_URL"] = f"{a.postgres}/{name}"
-        env["RIGCAL_BLOB_URL"] = f"s3://{a.s3_bucket}/{name}"
-    print("PostgreSQL + S3" if a.postgres else "SQLite + local blobs")
+    env = store_env(a, "load")
+    print(describe(a))
     key = subprocess.check_output([a.bin, "apikey", "create", "--tenant", "load", "--data-dir", data],
                                   env=env, stderr=subprocess.DEVNULL).decode().strip()
     srv = subprocess.Popen([a.bin, "serve", "--bind", "127.0.0.1:0", "--data-dir", data, "--workers", "1"],

@@ -113,10 +113,7 @@ pub fn run(a: Args) -> Result<i32> {
 
 async fn submit(a: &Args, client: &Client, upload: Upload, key: &str) -> Result<i32> {
     let len = upload.file.as_file().metadata()?.len();
-    let bar = ProgressBar::new(len).with_style(
-        ProgressStyle::with_template("upload {bar:30} {bytes}/{total_bytes} {bytes_per_sec}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let bar = progress(len, "upload {bar:30} {bytes}/{total_bytes} {bytes_per_sec}");
     let file = tokio::fs::File::open(upload.file.path()).await?;
     let counted = {
         let bar = bar.clone();
@@ -194,12 +191,18 @@ async fn submit(a: &Args, client: &Client, upload: Upload, key: &str) -> Result<
     Ok(exit_code(&status))
 }
 
+/// A progress bar of `len` steps drawn with `template` (on stderr, hidden when it is not
+/// a terminal). The templates are this file's constants; should one not parse, the bar
+/// is drawn in indicatif's default style rather than failing an upload over its looks.
+fn progress(len: u64, template: &str) -> ProgressBar {
+    let style =
+        ProgressStyle::with_template(template).unwrap_or_else(|_| ProgressStyle::default_bar());
+    ProgressBar::new(len).with_style(style)
+}
+
 /// Poll the job to its end, its stage and progress on a bar; the final status.
 async fn follow(client: &Client, jid: &str, timeout: Duration) -> Result<String> {
-    let bar = ProgressBar::new(100).with_style(
-        ProgressStyle::with_template("job {bar:30} {pos:>3}% {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-    );
+    let bar = progress(100, "job {bar:30} {pos:>3}% {msg}");
     let start = std::time::Instant::now();
     loop {
         let j = client
