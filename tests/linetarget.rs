@@ -74,7 +74,7 @@ fn aux_view(
     k: usize,
 ) -> (image::GrayImage, Vec<Pose>) {
     let poses = aux_poses(scene, k);
-    let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + k as u64, 2.0));
+    let img = render_line_targets(aux, &poses, &TARGET.layout(), &opts(100 + k as u64, 2.0));
     (img, poses)
 }
 
@@ -108,7 +108,12 @@ fn table2_ring_rig_and_auxiliary_images() {
     let mut sq = (0.0f64, 0.0f64, 0usize);
     for k in 0..8 {
         let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
-        let img = render_line_targets(&rig, &[cam_from_target], &TARGET, &opts(k as u64, 2.0));
+        let img = render_line_targets(
+            &rig,
+            &[cam_from_target],
+            &TARGET.layout(),
+            &opts(k as u64, 2.0),
+        );
         save(&img, &format!("rig{}", k + 1));
         let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&rig)));
         assert_eq!(
@@ -193,8 +198,12 @@ fn distorted_oblique_views_and_noise_free_exactness() {
                 * so3::exp(&Vec3::new((90.0 - tilt).to_radians(), 0.0, 0.0));
             let centre = Vec3::new(0.25, 0.0, 0.25);
             let cam_from_target = Pose::new(rot, Vec3::new(0.0, 0.0, 1.1) - rot * centre);
-            let img =
-                render_line_targets(&cam, &[cam_from_target], &target, &opts(view as u64, noise));
+            let img = render_line_targets(
+                &cam,
+                &[cam_from_target],
+                &target.layout(),
+                &opts(view as u64, noise),
+            );
             save(&img, &format!("{lens:?}-{view}"));
             let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&cam)));
             assert_eq!(
@@ -314,7 +323,7 @@ fn heavy_noise_still_finds_every_target() {
             let img = render_line_targets(
                 &rig,
                 &[cam_from_target],
-                &TARGET,
+                &TARGET.layout(),
                 &opts(seed * 100 + k as u64, 10.0),
             );
             let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&rig)));
@@ -324,7 +333,7 @@ fn heavy_noise_still_finds_every_target() {
             let img = render_line_targets(
                 &aux,
                 &poses,
-                &TARGET,
+                &TARGET.layout(),
                 &opts(seed * 100 + 50 + k as u64, 10.0),
             );
             let found = detect_line_targets(&Gray::from_luma8(&img), Lens(Some(&aux)));

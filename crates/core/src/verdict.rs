@@ -74,6 +74,7 @@ reason_codes! {
     LinesUnusable = "lines_unusable", Fatal;
     VanishingPointAtInfinity = "vanishing_point_at_infinity", Degrading;
     RingViewUnusable = "ring_view_unusable", Degrading;
+    LineLabellingAmbiguous = "line_labelling_ambiguous", Degrading;
     TargetNotLinked = "target_not_linked", Fatal;
     RingBroken = "ring_broken", Fatal;
     InconsistentRing = "inconsistent_ring", Fatal;

@@ -12,9 +12,11 @@
 pub mod gray;
 mod grid;
 pub mod imageio;
+pub mod linegrid;
 pub mod linetarget;
 pub mod quads;
 pub mod refine;
+pub mod ridge;
 pub mod tagfit;
 mod verify;
 

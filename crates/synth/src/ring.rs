@@ -13,6 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use rigcal_core::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
+use rigcal_core::target::line_layout::{LineLayout, Print};
 use rigcal_core::target::line_target::{LineTarget, LINES};
 use std::collections::BTreeMap;
 
@@ -32,6 +33,72 @@ pub const TARGET: LineTarget = LineTarget {
     length: 0.5,
     spacing: 0.2,
 };
+/// The print on each target of the ring: Wu's filled L or a grid of thin lines of the
+/// same L1 and L2 (`lines_x` × `lines_y`, stroke in metres).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RingPrint {
+    FilledL,
+    Grid {
+        lines_x: usize,
+        lines_y: usize,
+        stroke: f64,
+    },
+}
+
+impl RingPrint {
+    /// The "#" most people print: 3 × 3 lines, 12 mm strokes.
+    pub const GRID: RingPrint = RingPrint::Grid {
+        lines_x: 3,
+        lines_y: 3,
+        stroke: 0.012,
+    };
+
+    pub fn layout(&self) -> LineLayout {
+        match *self {
+            RingPrint::FilledL => LineLayout::l_target(TARGET.length, TARGET.spacing),
+            RingPrint::Grid {
+                lines_x,
+                lines_y,
+                stroke,
+            } => LineLayout::grid(TARGET.length, TARGET.spacing, lines_x, lines_y, stroke),
+        }
+    }
+
+    pub fn spec(&self, id: &str) -> TargetSpec {
+        match *self {
+            RingPrint::FilledL => TargetSpec::LineTarget {
+                id: id.into(),
+                length: TARGET.length,
+                spacing: TARGET.spacing,
+            },
+            RingPrint::Grid {
+                lines_x,
+                lines_y,
+                stroke,
+            } => TargetSpec::LineGrid {
+                id: id.into(),
+                length: TARGET.length,
+                spacing: TARGET.spacing,
+                lines_x: lines_x as u32,
+                lines_y: lines_y as u32,
+                stroke,
+            },
+        }
+    }
+
+    /// Where this print's frame sits in the L's frame, which [`ring_scene`] places: a
+    /// grid is centred where the L's centre is, its axes the L's.
+    pub fn l_from_target(&self) -> Pose {
+        match self {
+            RingPrint::FilledL => Pose::identity(),
+            RingPrint::Grid { .. } => {
+                let c = TARGET.corners().iter().sum::<Vec3>() / LINES as f64;
+                Pose::new(nalgebra::Matrix3::identity(), c)
+            }
+        }
+    }
+}
+
 /// Where the targets and the auxiliary camera stand: the paper gives neither (Table 2
 /// has the cameras only), so these are the factors of a placement study
 /// (`rigcal bench ring --target-distance --aux-distance --aux-pitch`).
@@ -156,14 +223,14 @@ pub fn ring_scene(layout: &RingLayout) -> RingScene {
 pub fn sample_lines(
     camera: &Camera,
     cam_from_target: &Pose,
-    target: &LineTarget,
+    target: &LineLayout,
     target_id: &str,
     noise_px: f64,
     rng: &mut impl Rng,
 ) -> Vec<LineSpec> {
     let normal = Normal::new(0.0, noise_px.max(1e-300)).expect("finite σ");
     let margin = 8.0;
-    (0..LINES)
+    (0..target.len())
         .map(|m| {
             let (a, b) = target.segment(m);
             let proj = |x: Vec3| camera.project(&cam_from_target.apply(&x));
@@ -196,44 +263,207 @@ pub fn sample_lines(
         .collect()
 }
 
-/// White paper around each printed L (m).
+/// White paper around each print (m).
 pub const PRINT_MARGIN: f64 = 0.05;
 
-/// Render line targets as `camera` sees them: each a dark L filled on a white sheet
-/// ([`rigcal_detect::linetarget`]'s print), on a grey ground. The targets must share one
-/// plane (the ring's lie on the ground); `cam_from_targets[0]`'s plane is rendered.
+/// The print of `layout` in target coordinates `(x, z)`: `Some(true)` on white paper,
+/// `Some(false)` on ink (the L filled, a grid's strokes), `None` off the sheet.
+fn print_shade(layout: &LineLayout) -> impl Fn(f64, f64) -> Option<bool> + Sync {
+    let half_stroke = match layout.print {
+        Print::Strokes { width } => width / 2.0,
+        Print::Outline => 0.0,
+    };
+    let (mut lo, mut hi) = (Vec2::repeat(f64::INFINITY), Vec2::repeat(f64::NEG_INFINITY));
+    for s in &layout.segments {
+        for p in [s.from, s.to] {
+            lo = lo.inf(&Vec2::new(p.x, p.z));
+            hi = hi.sup(&Vec2::new(p.x, p.z));
+        }
+    }
+    let pad = Vec2::repeat(PRINT_MARGIN + half_stroke);
+    let (lo, hi) = (lo - pad, hi + pad);
+    // The L's L1 (its x extent, l6) and L2 (its arm width, where l3 runs).
+    let filled_l = (layout.print == Print::Outline)
+        .then(|| (layout.segments[5].from.x, layout.segments[2].from.x));
+    let boxes: Vec<[f64; 4]> = layout
+        .segments
+        .iter()
+        .map(|s| {
+            let (a, b) = (s.from, s.to);
+            [
+                a.x.min(b.x) - half_stroke,
+                a.x.max(b.x) + half_stroke,
+                a.z.min(b.z) - half_stroke,
+                a.z.max(b.z) + half_stroke,
+            ]
+        })
+        .collect();
+    move |x: f64, z: f64| {
+        let ink = match filled_l {
+            Some((l1, l2)) => {
+                (0.0..=l1).contains(&x) && (0.0..=l2).contains(&z)
+                    || (0.0..=l2).contains(&x) && (0.0..=l1).contains(&z)
+            }
+            None => boxes
+                .iter()
+                .any(|b| (b[0]..=b[1]).contains(&x) && (b[2]..=b[3]).contains(&z)),
+        };
+        if ink {
+            Some(false)
+        } else {
+            ((lo.x..=hi.x).contains(&x) && (lo.y..=hi.y).contains(&z)).then_some(true)
+        }
+    }
+}
+
+/// Board (x, y, 0) of the renderer = target (x, 0, y): a proper rotation.
+fn target_from_board() -> Pose {
+    Pose::new(
+        nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]),
+        Vec3::zeros(),
+    )
+}
+
+/// Render line targets as `camera` sees them: each print on a white sheet on a grey
+/// ground, clean (blur and noise of `opts` only). The targets must share one plane (the
+/// ring's lie on the ground); `cam_from_targets[0]`'s plane is rendered.
 pub fn render_line_targets(
     camera: &Camera,
     cam_from_targets: &[Pose],
-    target: &LineTarget,
+    target: &LineLayout,
     opts: &crate::render::RenderOptions,
 ) -> image::GrayImage {
-    // Board (x, y, 0) of the renderer = target (x, 0, y): a proper rotation.
-    let target_from_board = Pose::new(
-        nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]),
-        Vec3::zeros(),
-    );
     let first = cam_from_targets[0];
     let others: Vec<Pose> = cam_from_targets
         .iter()
         .map(|t| t.inverse() * first)
         .collect();
-    let (l1, l2, m) = (target.length, target.spacing, PRINT_MARGIN);
+    let print = print_shade(target);
     let shade = move |bx: f64, by: f64| -> Option<bool> {
         let mut on_sheet = false;
         for t in &others {
             let p = t.apply(&Vec3::new(bx, 0.0, by));
-            let (x, z) = (p.x, p.z);
-            if (0.0..=l1).contains(&x) && (0.0..=l2).contains(&z)
-                || (0.0..=l2).contains(&x) && (0.0..=l1).contains(&z)
-            {
-                return Some(false);
+            match print(p.x, p.z) {
+                Some(false) => return Some(false),
+                Some(true) => on_sheet = true,
+                None => {}
             }
-            on_sheet |= (-m..=l1 + m).contains(&x) && (-m..=l1 + m).contains(&z);
         }
         on_sheet.then_some(true)
     };
-    crate::render::render(camera, &(first * target_from_board), &shade, opts)
+    crate::render::render(camera, &(first * target_from_board()), &shade, opts)
+}
+
+/// Render line targets as a real capture shows them: a textured floor (tiles of 3 cm in
+/// random greys, a darker grout), the prints, optics blur, per-image gain and offset,
+/// vignetting and sensor noise of `nuisance` (JPEG is the encoder's: [`Hall::encode`]).
+///
+/// [`Hall::encode`]: crate::hall::Hall::encode
+pub fn render_line_targets_real(
+    camera: &Camera,
+    cam_from_targets: &[Pose],
+    target: &LineLayout,
+    nuisance: &crate::hall::Nuisance,
+    seed: u64,
+) -> image::GrayImage {
+    use crate::render::{quantise, render_field, Hit};
+    let first = cam_from_targets[0];
+    let board_to_cam = first * target_from_board();
+    let others: Vec<Pose> = cam_from_targets
+        .iter()
+        .map(|t| t.inverse() * first)
+        .collect();
+    let print = print_shade(target);
+    let rt = board_to_cam.rot.transpose();
+    let o = rt * board_to_cam.trans;
+    let (white, black) = (225.0f32, 30.0f32);
+    let field = |_: Vec2, ray: Vec3| -> Hit {
+        let d = rt * ray;
+        let lambda = o.z / d.z;
+        if !(lambda.is_finite() && lambda > 0.0) {
+            return Hit {
+                class: 0,
+                grey: 90.0,
+                exact: false,
+            };
+        }
+        let p = d * lambda - o;
+        for t in &others {
+            let q = t.apply(&Vec3::new(p.x, 0.0, p.y));
+            match print(q.x, q.z) {
+                Some(false) => {
+                    return Hit {
+                        class: 1,
+                        grey: black,
+                        exact: true,
+                    }
+                }
+                Some(true) => {
+                    return Hit {
+                        class: 2,
+                        grey: white,
+                        exact: true,
+                    }
+                }
+                None => {}
+            }
+        }
+        // The floor: 3 cm tiles of random grey with 4 mm grout.
+        let (tx, ty) = ((p.x / 0.03).floor(), (p.y / 0.03).floor());
+        let (fx, fy) = (p.x / 0.03 - tx, p.y / 0.03 - ty);
+        if fx < 0.13 || fy < 0.13 {
+            return Hit {
+                class: 3,
+                grey: 70.0,
+                exact: false,
+            };
+        }
+        let h = (tx as i64).wrapping_mul(73_856_093) ^ (ty as i64).wrapping_mul(19_349_663);
+        let h = (h as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15) >> 40;
+        Hit {
+            class: 4 + (h & 0xFFFF),
+            grey: 100.0 + (h % 60) as f32,
+            exact: false,
+        }
+    };
+    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let jitter = rng.gen::<u64>();
+    let value = render_field(camera, &field, nuisance.blur, nuisance.edge_cells, jitter);
+    let gain = 1.0 + rng.gen_range(-1.0..=1.0) * nuisance.gain;
+    let offset = rng.gen_range(-1.0..=1.0) * nuisance.offset;
+    let w = camera.width as usize;
+    let (cx, cy) = (camera.cx, camera.cy);
+    let corner = (cx.max(camera.width as f64 - cx)).hypot(cy.max(camera.height as f64 - cy));
+    let vig = nuisance.vignetting;
+    let mut qrng = rand_chacha::ChaCha8Rng::seed_from_u64(rng.gen());
+    quantise(
+        camera,
+        &value,
+        |k, x| {
+            let (u, v) = ((k % w) as f64, (k / w) as f64);
+            let r2 = ((u - cx).powi(2) + (v - cy).powi(2)) / (corner * corner);
+            gain * x * (1.0 - vig * r2) + offset
+        },
+        nuisance.noise,
+        &mut qrng,
+    )
+}
+
+/// How a ring is rendered as images: the print on its targets and, for realistic
+/// captures, the nuisances (textured floor, photometry, JPEG); `None` renders clean PNGs.
+#[derive(Clone, Debug)]
+pub struct RingImages {
+    pub print: RingPrint,
+    pub nuisance: Option<crate::hall::Nuisance>,
+}
+
+impl Default for RingImages {
+    fn default() -> Self {
+        Self {
+            print: RingPrint::FilledL,
+            nuisance: None,
+        }
+    }
 }
 
 /// The ring as a session of images: `scene`'s 8 rig images (`rig/camK.png`, with
@@ -248,33 +478,66 @@ pub fn image_session(
     noise_grey: f64,
     seed: u64,
 ) -> (SessionManifest, Truth, BTreeMap<String, Vec<u8>>) {
+    image_session_with(rig, aux, scene, &RingImages::default(), noise_grey, seed)
+}
+
+/// [`image_session`] with another print and, optionally, a realistic capture's nuisances
+/// (then `noise_grey` replaces the nuisance's sensor noise and the files are JPEG).
+pub fn image_session_with(
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+    look: &RingImages,
+    noise_grey: f64,
+    seed: u64,
+) -> (SessionManifest, Truth, BTreeMap<String, Vec<u8>>) {
     let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
-    let (mut m, truth) = generate_with(&mut rng, 0.0, rig, aux, scene);
+    let (mut m, truth) = generate_print(&mut rng, [0.0; 2], rig, aux, scene, look.print);
+    let layout = look.print.layout();
+    let placed = look.print.l_from_target();
     let opts = |k: u64| crate::render::RenderOptions {
         noise_sigma: noise_grey,
         seed: seed.wrapping_mul(1000).wrapping_add(k),
         ..Default::default()
     };
-    let png = |img: image::GrayImage| {
-        let mut out = std::io::Cursor::new(Vec::new());
-        img.write_to(&mut out, image::ImageFormat::Png)
-            .map(|_| out.into_inner())
-            .unwrap_or_default()
+    let ext = if look.nuisance.is_some() {
+        "jpg"
+    } else {
+        "png"
+    };
+    let render = |camera: &Camera, poses: &[Pose], k: u64| -> Vec<u8> {
+        match &look.nuisance {
+            Some(n) => {
+                let n = crate::hall::Nuisance {
+                    noise: noise_grey,
+                    ..n.clone()
+                };
+                let img = render_line_targets_real(camera, poses, &layout, &n, opts(k).seed);
+                crate::hall::Hall::encode(&img, &n).unwrap_or_default()
+            }
+            None => {
+                let img = render_line_targets(camera, poses, &layout, &opts(k));
+                let mut out = std::io::Cursor::new(Vec::new());
+                img.write_to(&mut out, image::ImageFormat::Png)
+                    .map(|_| out.into_inner())
+                    .unwrap_or_default()
+            }
+        }
     };
     let mut files = BTreeMap::new();
     let frame = &mut m.frames[0];
     frame.lines.clear();
     for k in 0..8 {
-        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
-        let path = format!("rig/cam{}.png", k + 1);
-        let img = render_line_targets(rig, &[cam_from_target], &TARGET, &opts(k as u64));
-        files.insert(path.clone(), png(img));
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k] * placed;
+        let path = format!("rig/cam{}.{ext}", k + 1);
+        files.insert(path.clone(), render(rig, &[cam_from_target], k as u64));
         frame.images.insert(format!("cam{}", k + 1), path);
     }
-    let centre = TARGET.corners().iter().sum::<Vec3>() / LINES as f64;
+    let centre = layout.centre();
     for (i, r) in m.ring.iter_mut().enumerate() {
         let (k, j) = scene.pair_of(i);
-        let poses = [k, j].map(|t| scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t]);
+        let poses =
+            [k, j].map(|t| scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t] * placed);
         let u = |p: &Pose| aux.project(&p.apply(&centre)).map_or(0.0, |q| q.x);
         let (a, b) = (format!("t{}", k + 1), format!("t{}", j + 1));
         r.targets = if u(&poses[0]) <= u(&poses[1]) {
@@ -282,9 +545,8 @@ pub fn image_session(
         } else {
             vec![b, a]
         };
-        let path = format!("aux/{i}.png");
-        let img = render_line_targets(aux, &poses, &TARGET, &opts(100 + i as u64));
-        files.insert(path.clone(), png(img));
+        let path = format!("aux/{i}.{ext}");
+        files.insert(path.clone(), render(aux, &poses, 100 + i as u64));
         r.lines.clear();
         r.image = Some(path);
     }
@@ -312,22 +574,36 @@ pub fn generate_with(
 /// (`[rig, aux]`, px), to see which of the two limits the result.
 pub fn generate_split(
     rng: &mut impl Rng,
-    [rig_noise, aux_noise]: [f64; 2],
+    noise: [f64; 2],
     rig: &Camera,
     aux: &Camera,
     scene: &RingScene,
 ) -> (SessionManifest, Truth) {
+    generate_print(rng, noise, rig, aux, scene, RingPrint::FilledL)
+}
+
+/// [`generate_split`] with targets of another print (line points on its layout).
+pub fn generate_print(
+    rng: &mut impl Rng,
+    [rig_noise, aux_noise]: [f64; 2],
+    rig: &Camera,
+    aux: &Camera,
+    scene: &RingScene,
+    print: RingPrint,
+) -> (SessionManifest, Truth) {
+    let layout = print.layout();
+    let placed = print.l_from_target();
     let cam_ids: Vec<String> = (1..=8).map(|k| format!("cam{k}")).collect();
     let target_ids: Vec<String> = (1..=8).map(|k| format!("t{k}")).collect();
     let mut lines = BTreeMap::new();
     for k in 0..8 {
-        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k];
+        let cam_from_target = scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k] * placed;
         lines.insert(
             cam_ids[k].clone(),
             sample_lines(
                 rig,
                 &cam_from_target,
-                &TARGET,
+                &layout,
                 &target_ids[k],
                 rig_noise,
                 rng,
@@ -339,11 +615,12 @@ pub fn generate_split(
             let (k, j) = scene.pair_of(i);
             let mut l = Vec::new();
             for t in [k, j] {
-                let aux_from_target = scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t];
+                let aux_from_target =
+                    scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t] * placed;
                 l.extend(sample_lines(
                     aux,
                     &aux_from_target,
-                    &TARGET,
+                    &layout,
                     &target_ids[t],
                     aux_noise,
                     rng,
@@ -363,14 +640,7 @@ pub fn generate_split(
         method: rigcal_core::session::Method::Vanishing,
         reference_camera: cam_ids[0].clone(),
         cameras: cam_ids.iter().map(|id| camera_spec(id, rig)).collect(),
-        targets: target_ids
-            .iter()
-            .map(|id| TargetSpec::LineTarget {
-                id: id.clone(),
-                length: TARGET.length,
-                spacing: TARGET.spacing,
-            })
-            .collect(),
+        targets: target_ids.iter().map(|id| print.spec(id)).collect(),
         scale: vec![],
         frames: vec![FrameSpec {
             index: 0,
@@ -401,10 +671,15 @@ pub fn generate_split(
             .iter()
             .zip(&scene.ecf_from_target)
             .flat_map(|(id, t)| {
-                TARGET.corners().into_iter().enumerate().map(move |(m, c)| {
-                    let p = t.apply(&c);
-                    (format!("line:{id}:{}", m + 1), [p.x, p.y, p.z])
-                })
+                let t = *t * placed;
+                layout
+                    .crossings()
+                    .into_iter()
+                    .enumerate()
+                    .map(move |(m, (_, _, c))| {
+                        let p = t.apply(&c);
+                        (format!("line:{id}:{}", m + 1), [p.x, p.y, p.z])
+                    })
             })
             .collect(),
     };

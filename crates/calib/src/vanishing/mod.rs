@@ -7,6 +7,7 @@
 //! optimisation of all targets and auxiliary views (eq. 25) → camera extrinsics (eq. 26).
 
 pub mod bundle;
+pub mod labelling;
 pub mod pose;
 pub mod ring;
 
@@ -15,7 +16,7 @@ use pose::{estimate_view_pose, ideal_camera, undistort, ViewPose};
 use rigcal_core::geometry::{Camera, Pose, Vec2};
 use rigcal_core::result::Reason;
 use rigcal_core::session::{LineObs, Session, VanishingInput};
-use rigcal_core::target::line_target::{LineTarget, LINES};
+use rigcal_core::target::line_layout::LineLayout;
 use rigcal_core::verdict::{ReasonCode, Severity};
 use rigcal_solve::Loss;
 use ring::{chain, fuse, propagate, Edges, Uncertain};
@@ -72,29 +73,25 @@ pub struct Solution {
     pub closure: Option<((usize, usize), f64, f64)>,
     pub summary: LineSummary,
     pub sigma_px: f64,
+    /// Labelling decisions for symmetric targets in the auxiliary views (`view` indexes
+    /// `ring_views`' order before unusable views were dropped: see `ring`).
+    pub labelling: Vec<(usize, labelling::Choice)>,
 }
 
 type Pair = (usize, usize);
 type ComposeFn = fn(&[Pose]) -> Pose;
 
-/// Undistorted points of each feature line of `target` among `obs`.
-fn points_by_line(camera: &Camera, obs: &[LineObs], target: usize) -> [Vec<Vec2>; LINES] {
-    let mut out: [Vec<Vec2>; LINES] = Default::default();
-    for o in obs.iter().filter(|o| o.target == target) {
+/// Undistorted points of each line of `target` (a layout of `lines` lines) among `obs`.
+fn points_by_line(camera: &Camera, obs: &[LineObs], target: usize, lines: usize) -> Vec<Vec<Vec2>> {
+    let mut out = vec![Vec::new(); lines];
+    for o in obs.iter().filter(|o| o.target == target && o.line < lines) {
         out[o.line] = undistort(camera, &o.points);
     }
     out
 }
 
-fn geometry(input: &VanishingInput) -> Vec<LineTarget> {
-    input
-        .targets
-        .iter()
-        .map(|t| LineTarget {
-            length: t.length,
-            spacing: t.spacing,
-        })
-        .collect()
+fn geometry(input: &VanishingInput) -> Vec<LineLayout> {
+    input.targets.iter().map(|t| t.layout.clone()).collect()
 }
 
 fn finding(code: ReasonCode, message: String, camera: Option<&str>) -> Finding {
@@ -132,7 +129,7 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
             continue;
         };
         let cam = &session.cameras[c].camera;
-        let pts = points_by_line(cam, obs, first.target);
+        let pts = points_by_line(cam, obs, first.target, geo[first.target].len());
         match estimate_view_pose(
             &ideal_camera(cam),
             &geo[first.target],
@@ -157,12 +154,10 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
     // 2. Auxiliary views: both targets' poses, then the pair transform (eq. 22).
     let aux = ideal_camera(&input.auxiliary.camera);
     let mut views: Vec<(usize, [ViewPose; 2])> = Vec::new();
-    let mut per_pair: std::collections::BTreeMap<(usize, usize), Vec<Uncertain>> =
-        Default::default();
     for (ri, r) in input.ring.iter().enumerate() {
         let mut poses = Vec::new();
         for &t in &r.targets {
-            let pts = points_by_line(&input.auxiliary.camera, &r.lines, t);
+            let pts = points_by_line(&input.auxiliary.camera, &r.lines, t, geo[t].len());
             match estimate_view_pose(&aux, &geo[t], &pts, &opts.loss, opts.max_iterations) {
                 Ok(v) => {
                     if v.init == pose::Init::Homography {
@@ -187,6 +182,63 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
         let Ok(poses) = <[ViewPose; 2]>::try_from(poses) else {
             continue;
         };
+        views.push((ri, poses));
+    }
+
+    // 2b. Symmetric layouts: label every target in every auxiliary view as its rig view did.
+    let Some((reference_target, _)) = rig[session.reference].clone() else {
+        return (None, findings);
+    };
+    let mut target_from_cam = vec![None; geo.len()];
+    for (t, v) in rig.iter().flatten() {
+        target_from_cam[*t] = Some(v.cam_from_target.inverse());
+    }
+    let label_views: Vec<labelling::View> = views
+        .iter()
+        .map(|(ri, p)| labelling::View {
+            targets: input.ring[*ri].targets,
+            poses: [p[0].cam_from_target, p[1].cam_from_target],
+        })
+        .collect();
+    let (chosen, labelling) =
+        labelling::resolve(&geo, reference_target, &target_from_cam, &label_views);
+    let mut ring_lines: Vec<Vec<LineObs>> = input.ring.iter().map(|r| r.lines.clone()).collect();
+    for ((ri, poses), g) in views.iter_mut().zip(&chosen) {
+        for k in 0..2 {
+            let t = input.ring[*ri].targets[k];
+            let Some(sym) = geo[t]
+                .symmetries()
+                .into_iter()
+                .nth(g[k])
+                .filter(|_| g[k] > 0)
+            else {
+                continue;
+            };
+            poses[k].cam_from_target = labelling::relabel(&poses[k].cam_from_target, &sym);
+            poses[k].initial = labelling::relabel(&poses[k].initial, &sym);
+            for o in ring_lines[*ri].iter_mut().filter(|o| o.target == t) {
+                o.line = sym.line_of[o.line];
+            }
+        }
+    }
+    for c in labelling.iter().filter(|c| !c.clear) {
+        let ri = views[c.view].0;
+        findings.push(finding(
+            ReasonCode::LineLabellingAmbiguous,
+            format!(
+                "ring[{ri}] (index {}), target {}: the grid is symmetric and which way round it was photographed is not decided ({}: runner-up only {:.2}× worse); kept as detected. Photograph the ring so that it closes, or print an orientation mark",
+                input.ring[ri].index,
+                tname(c.target),
+                c.criterion.name(),
+                c.margin
+            ),
+            None,
+        ));
+    }
+    let mut per_pair: std::collections::BTreeMap<(usize, usize), Vec<Uncertain>> =
+        Default::default();
+    for (ri, poses) in &views {
+        let r = &input.ring[*ri];
         let (i, j) = (r.targets[0], r.targets[1]);
         let factors = [
             Uncertain {
@@ -209,7 +261,6 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
             pose: f(&poses_now),
             cov: propagate(&factors, f),
         });
-        views.push((ri, poses));
     }
     let mut edges = Edges::new();
     let mut pairs = Vec::new();
@@ -221,9 +272,6 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
     }
 
     // 3. Chain from the reference camera's target (eq. 23).
-    let Some((reference_target, _)) = rig[session.reference].clone() else {
-        return (None, findings);
-    };
     let ch = chain(input.targets.len(), reference_target, &edges);
     for (c, r) in rig.iter().enumerate() {
         let Some((t, _)) = r else { continue };
@@ -252,6 +300,7 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
     // 4. Ring-closure optimisation (eq. 25): all targets linked to the reference and
     //    every usable auxiliary view, from the chain.
     let linked: Vec<bool> = ch.path.iter().map(|p| !p.is_empty()).collect();
+    let views_ring: Vec<usize> = views.iter().map(|(ri, _)| *ri).collect();
     views.retain(|(ri, _)| input.ring[*ri].targets.iter().all(|t| linked[*t]));
     let mut problem = LineBundle {
         geometry: geo.clone(),
@@ -276,7 +325,7 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
             .iter()
             .enumerate()
             .flat_map(|(v, (ri, _))| {
-                input.ring[*ri].lines.iter().map(move |o| LinePoints {
+                ring_lines[*ri].iter().map(move |o| LinePoints {
                     view: v,
                     target: o.target,
                     line: o.line,
@@ -382,6 +431,10 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
             closure,
             summary,
             sigma_px,
+            labelling: labelling
+                .into_iter()
+                .map(|c| (views_ring[c.view], c))
+                .collect(),
         }),
         findings,
     )

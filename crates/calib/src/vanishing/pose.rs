@@ -11,16 +11,19 @@
 //! `z1/z2 = d2·r2 / d2·r1` (eq. 14-15), scaled by `|P1P2| = L1` (eq. 16), `t = z1·r1`
 //! (eq. 17). That ratio is 0/0 when `d2` is perpendicular to the ray through `P1`, which
 //! happens in ordinary views (an auxiliary view of the Table 2 ring at 0.5 px noise gave
-//! a pose 180° off). So the translation here comes from all six corners at once, linearly
-//! (`[r]×(R·X + t) = 0`, which uses L1 and L2 through the corner coordinates), and the
-//! signs of `d1`, `d2` are the ones of the four candidate rotations whose translation puts
-//! every corner in front of the camera with the smallest corner reprojection error.
+//! a pose 180° off). So the translation here comes from all crossings at once, linearly
+//! (`[r]×(R·X + t) = 0`, which uses L1 and L2 through the crossings' coordinates; the
+//! crossings of every `x` line with every `z` line, which for the L include its six
+//! corners), and the signs of `d1`, `d2` are the ones of the four candidate rotations
+//! whose translation puts every crossing in front of the camera with the smallest
+//! reprojection error. Nothing here is specific to the L: any
+//! [`LineLayout`] with two lines per group works the same way.
 
 use super::bundle::{LineBundle, LinePoints};
 use nalgebra::DMatrix;
 use rigcal_core::geometry::line2::{fit_line, intersect, vanishing_direction};
 use rigcal_core::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
-use rigcal_core::target::line_target::{LineTarget, LINES, X_GROUP, Z_GROUP};
+use rigcal_core::target::line_layout::{Axis, LineLayout};
 use rigcal_solve::Loss;
 
 /// A line direction closer than this to the image plane puts its vanishing point "at
@@ -54,37 +57,39 @@ fn intrinsic_matrix(c: &Camera) -> Mat3 {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Init {
     VanishingPoints,
-    /// Fallback when a vanishing point is at infinity: the homography of the six corners.
+    /// Fallback when a vanishing point is at infinity: the homography of the crossings.
     Homography,
 }
 
 /// The pose from the vanishing points, and the elevation (deg) of the `z` and `x`
-/// directions above the image plane. `Err` says why it cannot be computed.
+/// directions above the image plane. `lines[m]` is line `m`'s fit (`None`: too few
+/// points). `Err` says why it cannot be computed.
 pub fn pose_from_vanishing(
-    target: &LineTarget,
-    lines: &[Vec3; LINES],
+    layout: &LineLayout,
+    lines: &[Option<Vec3>],
     camera: &Camera,
 ) -> Result<(Pose, [f64; 2]), String> {
     let k = intrinsic_matrix(camera);
-    let group = |g: [usize; 3]| g.map(|m| lines[m]);
-    let d1 = vanishing_direction(&group(Z_GROUP), &k).ok_or("no vanishing point of l1 l3 l5")?;
-    let d2 = vanishing_direction(&group(X_GROUP), &k).ok_or("no vanishing point of l2 l4 l6")?;
+    let group = |axis: Axis| -> Vec<Vec3> {
+        layout
+            .group(axis)
+            .into_iter()
+            .filter_map(|m| lines[m])
+            .collect()
+    };
+    let d1 = vanishing_direction(&group(Axis::Z), &k)
+        .ok_or("no vanishing point of the lines along the target's z")?;
+    let d2 = vanishing_direction(&group(Axis::X), &k)
+        .ok_or("no vanishing point of the lines along the target's x")?;
     let elevation = [d1, d2].map(|d| d.z.abs().min(1.0).asin().to_degrees());
-    let corners: Vec<Vec2> = (0..LINES)
-        .map(|m| {
-            intersect(&lines[m], &lines[LineTarget::previous_line(m)]).ok_or_else(|| {
-                format!("lines l{} and l{} do not intersect", m + 1, (m + 5) % 6 + 1)
-            })
-        })
-        .collect::<Result<_, _>>()?;
+    let (local, corners) = crossings(layout, lines)?;
     let kinv = k.try_inverse().ok_or("singular intrinsics")?;
     let rays: Vec<Vec3> = corners
         .iter()
         .map(|p| kinv * Vec3::new(p.x, p.y, 1.0))
         .collect();
-    let local = target.corners();
     // The signs of d1, d2: of the four rotations, the one whose translation puts every
-    // corner in front of the camera and reprojects them best.
+    // crossing in front of the camera and reprojects them best.
     let mut best: Option<(f64, Pose)> = None;
     for (s1, s2) in [(1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)] {
         let (z, x) = (d1 * s1, d2 * s2);
@@ -107,6 +112,32 @@ pub fn pose_from_vanishing(
     }
     let (_, pose) = best.ok_or("no orientation puts the target in front of the camera")?;
     Ok((pose, elevation))
+}
+
+/// The crossings of every fitted `x` line with every fitted `z` line: target points and
+/// their images.
+fn crossings(
+    layout: &LineLayout,
+    lines: &[Option<Vec3>],
+) -> Result<(Vec<Vec3>, Vec<Vec2>), String> {
+    let mut local = Vec::new();
+    let mut image = Vec::new();
+    for (i, j, p) in layout.crossings() {
+        let (Some(a), Some(b)) = (lines[i], lines[j]) else {
+            continue;
+        };
+        let q = intersect(&a, &b)
+            .ok_or_else(|| format!("lines l{} and l{} do not intersect", i + 1, j + 1))?;
+        local.push(p);
+        image.push(q);
+    }
+    if local.len() < 4 {
+        return Err(format!(
+            "{} crossing(s) of fitted lines; the pose needs at least 4",
+            local.len()
+        ));
+    }
+    Ok((local, image))
 }
 
 /// The translation that puts each corner `local[m]` (rotated by `rot`) on its ray: two
@@ -140,62 +171,73 @@ pub struct ViewPose {
     pub residuals: Vec<f64>,
 }
 
-/// Fit the six feature lines of one target in one view (undistorted pixels per line).
-pub fn fit_lines(points: &[Vec<Vec2>; LINES]) -> Result<[Vec3; LINES], String> {
-    let mut out = [Vec3::zeros(); LINES];
-    for m in 0..LINES {
-        if points[m].len() < MIN_POINTS_PER_LINE {
+/// Fit every line of one target in one view (undistorted pixels per line): `None` for a
+/// line with fewer than [`MIN_POINTS_PER_LINE`] points (hidden or cut off). Each group
+/// needs two fitted lines for its vanishing point.
+pub fn fit_lines(layout: &LineLayout, points: &[Vec<Vec2>]) -> Result<Vec<Option<Vec3>>, String> {
+    let mut out = vec![None; layout.len()];
+    for (m, pts) in points.iter().enumerate().take(layout.len()) {
+        if pts.len() >= MIN_POINTS_PER_LINE {
+            out[m] =
+                Some(fit_line(pts).ok_or_else(|| format!("line l{} is a single point", m + 1))?);
+        }
+    }
+    for (axis, name) in [(Axis::Z, "z"), (Axis::X, "x")] {
+        let group = layout.group(axis);
+        if group.iter().filter(|&&m| out[m].is_some()).count() < 2 {
+            let missing: Vec<String> = group
+                .iter()
+                .filter(|&&m| out[m].is_none())
+                .map(|m| format!("l{} ({} points)", m + 1, points.get(*m).map_or(0, Vec::len)))
+                .collect();
             return Err(format!(
-                "feature line l{} has {} point(s); each of the 6 lines needs at least {MIN_POINTS_PER_LINE}",
-                m + 1,
-                points[m].len()
+                "fewer than 2 of the lines along the target's {name} have {MIN_POINTS_PER_LINE} points or more (a vanishing point needs two): {}",
+                missing.join(", ")
             ));
         }
-        out[m] = fit_line(&points[m])
-            .ok_or_else(|| format!("feature line l{} is a single point", m + 1))?;
     }
     Ok(out)
 }
 
-/// The pose of `camera` (ideal pinhole) relative to `target` from the points measured on
-/// its six feature lines: vanishing points (or the corner homography when one is at
+/// The pose of `camera` (ideal pinhole) relative to a target of `layout` from the points
+/// measured on its lines: vanishing points (or the crossings' homography when one is at
 /// infinity), then point-to-line Levenberg–Marquardt.
 pub fn estimate_view_pose(
     camera: &Camera,
-    target: &LineTarget,
-    points: &[Vec<Vec2>; LINES],
+    layout: &LineLayout,
+    points: &[Vec<Vec2>],
     loss: &Loss,
     max_iterations: usize,
 ) -> Result<ViewPose, String> {
-    let lines = fit_lines(points)?;
-    let (initial, init, elevation_deg) = match pose_from_vanishing(target, &lines, camera) {
+    let lines = fit_lines(layout, points)?;
+    let (initial, init, elevation_deg) = match pose_from_vanishing(layout, &lines, camera) {
         Ok((pose, elev)) if elev.iter().all(|e| *e >= MIN_ELEVATION_DEG) => {
             (pose, Init::VanishingPoints, elev)
         }
         other => {
             let elev = other.as_ref().map(|(_, e)| *e).unwrap_or([0.0; 2]);
-            let corners: Vec<Vec2> = (0..LINES)
-                .map(|m| intersect(&lines[m], &lines[LineTarget::previous_line(m)]))
-                .collect::<Option<_>>()
-                .ok_or("adjacent feature lines are parallel in the image")?;
-            let pose = crate::pnp::estimate_pose(camera, &target.corners(), &corners)
-                .ok_or("neither the vanishing points nor the corner homography give a pose")?;
+            let (local, image) = crossings(layout, &lines)?;
+            let pose = crate::pnp::estimate_pose(camera, &local, &image)
+                .ok_or("neither the vanishing points nor the crossings' homography give a pose")?;
             (pose, Init::Homography, elev)
         }
     };
     let mut problem = LineBundle {
-        geometry: vec![*target],
+        geometry: vec![layout.clone()],
         ref_from_target: vec![Pose::identity()],
         target_free: vec![false],
         cameras: vec![camera.clone()],
         cam_from_ref: vec![initial],
         view_free: vec![true],
-        obs: (0..LINES)
-            .map(|m| LinePoints {
+        obs: points
+            .iter()
+            .enumerate()
+            .filter(|(_, p)| !p.is_empty())
+            .map(|(m, p)| LinePoints {
                 view: 0,
                 target: 0,
                 line: m,
-                points: points[m].clone(),
+                points: p.clone(),
             })
             .collect(),
     };
@@ -230,40 +272,39 @@ pub(crate) mod tests {
     pub fn sample_lines(
         camera: &Camera,
         cam_from_target: &Pose,
-        target: &LineTarget,
+        target: &LineLayout,
         noise_px: f64,
         rng: &mut impl Rng,
-    ) -> [Vec<Vec2>; LINES] {
+    ) -> Vec<Vec<Vec2>> {
         let normal = Normal::new(0.0, noise_px.max(1e-300)).unwrap();
-        std::array::from_fn(|m| {
-            let (a, b) = target.segment(m);
-            let (pa, pb) = (
-                camera.project(&cam_from_target.apply(&a)).unwrap(),
-                camera.project(&cam_from_target.apply(&b)).unwrap(),
-            );
-            let n = ((pb - pa).norm().round() as usize).max(2);
-            (0..n)
-                .map(|i| {
-                    let s = (i as f64 + 0.5) / n as f64;
-                    let p = camera
-                        .project(&cam_from_target.apply(&(a + (b - a) * s)))
-                        .unwrap();
-                    if noise_px > 0.0 {
-                        p + Vec2::new(normal.sample(rng), normal.sample(rng))
-                    } else {
-                        p
-                    }
-                })
-                .collect()
-        })
+        (0..target.len())
+            .map(|m| {
+                let (a, b) = target.segment(m);
+                let (pa, pb) = (
+                    camera.project(&cam_from_target.apply(&a)).unwrap(),
+                    camera.project(&cam_from_target.apply(&b)).unwrap(),
+                );
+                let n = ((pb - pa).norm().round() as usize).max(2);
+                (0..n)
+                    .map(|i| {
+                        let s = (i as f64 + 0.5) / n as f64;
+                        let p = camera
+                            .project(&cam_from_target.apply(&(a + (b - a) * s)))
+                            .unwrap();
+                        if noise_px > 0.0 {
+                            p + Vec2::new(normal.sample(rng), normal.sample(rng))
+                        } else {
+                            p
+                        }
+                    })
+                    .collect()
+            })
+            .collect()
     }
 
-    fn setup() -> (Camera, LineTarget, Pose) {
+    fn setup() -> (Camera, LineLayout, Pose) {
         let camera = Camera::pinhole(796.44, 796.44, 512.0, 384.0, 1024, 768);
-        let target = LineTarget {
-            length: 0.5,
-            spacing: 0.2,
-        };
+        let target = LineLayout::l_target(0.5, 0.2);
         // Looking down 35° at a target 1.2 m ahead, its diagonal towards the camera.
         let rot = so3::exp(&Vec3::new(-(55f64).to_radians(), 0.0, 0.0))
             * so3::exp(&Vec3::new(0.0, (225f64).to_radians(), 0.0));
@@ -277,7 +318,7 @@ pub(crate) mod tests {
         let (camera, target, truth) = setup();
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
         let pts = sample_lines(&camera, &truth, &target, 0.0, &mut rng);
-        let lines = fit_lines(&pts).unwrap();
+        let lines = fit_lines(&target, &pts).unwrap();
         let (pose, elev) = pose_from_vanishing(&target, &lines, &camera).unwrap();
         let (dr, dt) = pose.distance(&truth);
         assert!(dr < 1e-9 && dt < 1e-9, "{dr} {dt}");
@@ -329,8 +370,14 @@ pub(crate) mod tests {
         let (camera, target, truth) = setup();
         let mut rng = rand::rngs::StdRng::seed_from_u64(1);
         let mut pts = sample_lines(&camera, &truth, &target, 0.0, &mut rng);
+        // One line of a group hidden: the other two still give its vanishing point.
         pts[3].truncate(2);
+        estimate_view_pose(&camera, &target, &pts, &Loss::Squared, 50).unwrap();
+        pts[5].clear();
         let e = estimate_view_pose(&camera, &target, &pts, &Loss::Squared, 50).unwrap_err();
-        assert!(e.contains("l4"), "{e}");
+        assert!(
+            e.contains("l4 (2 points)") && e.contains("l6 (0 points)"),
+            "{e}"
+        );
     }
 }

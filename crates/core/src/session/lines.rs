@@ -7,6 +7,7 @@ use super::raw::*;
 use super::validate::{camera_from_spec, NamedCamera};
 use super::InputError;
 use crate::geometry::{Camera, Vec2};
+use crate::target::line_layout::{Axis, LineLayout};
 use std::collections::{BTreeMap, HashMap};
 
 /// Points per line above which a session is refused (a 65 536 px line sampled twice per pixel).
@@ -14,12 +15,114 @@ pub const MAX_POINTS_PER_LINE: usize = 131_072;
 /// Ring views above which a session is refused.
 pub const MAX_RING_VIEWS: usize = 10_000;
 
-/// Wu's line target: outer length L1 and spacing L2 (metres).
+/// A target of two orthogonal groups of parallel lines, by its layout.
 #[derive(Clone, Debug)]
 pub struct LineTargetDef {
     pub id: String,
-    pub length: f64,
-    pub spacing: f64,
+    pub layout: LineLayout,
+}
+
+/// Lines per group and per target above which a session is refused.
+pub const MAX_LINES_PER_GROUP: u32 = 64;
+
+/// The layout of a line target spec; structural problems name their field.
+fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
+    let layout = match t {
+        TargetSpec::LineTarget {
+            length, spacing, ..
+        } => {
+            if spacing >= length {
+                return Err(InputError::new(
+                    format!("{at}.spacing"),
+                    format!("a spacing L2 smaller than the length L1 = {length} m, got {spacing}"),
+                ));
+            }
+            LineLayout::l_target(*length, *spacing)
+        }
+        TargetSpec::LineGrid {
+            length,
+            spacing,
+            lines_x,
+            lines_y,
+            stroke,
+            ..
+        } => {
+            for (name, n) in [("lines_x", lines_x), ("lines_y", lines_y)] {
+                if !(2..=MAX_LINES_PER_GROUP).contains(n) {
+                    return Err(InputError::new(
+                        format!("{at}.{name}"),
+                        format!("between 2 and {MAX_LINES_PER_GROUP} lines (a vanishing point needs two), got {n}"),
+                    ));
+                }
+            }
+            // The outermost lines of each group must cross the other group's lines.
+            let span = (*lines_x.max(lines_y) - 1) as f64 * spacing;
+            if span >= *length {
+                return Err(InputError::new(
+                    format!("{at}.spacing"),
+                    format!(
+                        "a spacing for which every line crosses the other group's lines ((lines − 1) × spacing = {span} m shorter than length = {length} m), got {spacing}"
+                    ),
+                ));
+            }
+            if stroke * 2.0 >= *spacing {
+                return Err(InputError::new(
+                    format!("{at}.stroke"),
+                    format!("a stroke narrower than half the spacing ({spacing} m), got {stroke}"),
+                ));
+            }
+            LineLayout::grid(
+                *length,
+                *spacing,
+                *lines_x as usize,
+                *lines_y as usize,
+                *stroke,
+            )
+        }
+        TargetSpec::LineSegments {
+            segments, stroke, ..
+        } => {
+            let layout = LineLayout::from_sheet_segments(segments, *stroke)
+                .map_err(|(k, why)| InputError::new(format!("{at}.segments[{k}]"), why))?;
+            for axis in [Axis::X, Axis::Z] {
+                let n = layout.group(axis).len();
+                if !(2..=MAX_LINES_PER_GROUP as usize).contains(&n) {
+                    let name = if axis == Axis::X { "x" } else { "y" };
+                    return Err(InputError::new(
+                        format!("{at}.segments"),
+                        format!("between 2 and {MAX_LINES_PER_GROUP} segments along the sheet's {name} axis (a vanishing point needs two), got {n}"),
+                    ));
+                }
+            }
+            for (g, axis) in [(Axis::X, "x"), (Axis::Z, "y")] {
+                let mut offsets: Vec<f64> = layout
+                    .group(g)
+                    .iter()
+                    .map(|&m| {
+                        let s = layout.segments[m];
+                        if g == Axis::X {
+                            s.from.z
+                        } else {
+                            s.from.x
+                        }
+                    })
+                    .collect();
+                offsets.sort_by(f64::total_cmp);
+                if offsets.windows(2).any(|w| w[1] - w[0] <= 2.0 * stroke) {
+                    return Err(InputError::new(
+                        format!("{at}.segments"),
+                        format!("segments along the sheet's {axis} axis on distinct lines more than two strokes ({stroke} m) apart"),
+                    ));
+                }
+            }
+            layout
+        }
+        _ => return Err(InputError::new(
+            format!("{at}.type"),
+            "line_target, line_grid or line_segments (the vanishing method uses only line targets)",
+        )),
+    };
+    Ok(layout)
 }
 
 /// Points measured on feature line `line` (0-based: `l1` is 0) of target `target`
@@ -55,6 +158,7 @@ fn line_obs(
     camera: &Camera,
     cam_name: &str,
     target_index: &HashMap<&str, usize>,
+    lines_of: &[usize],
 ) -> Result<LineObs, InputError> {
     let target = *target_index.get(spec.target.as_str()).ok_or_else(|| {
         InputError::new(
@@ -65,10 +169,14 @@ fn line_obs(
             ),
         )
     })?;
-    if !(1..=6).contains(&spec.line) {
+    let n = lines_of[target];
+    if !(1..=n).contains(&(spec.line as usize)) {
         return Err(InputError::new(
             format!("{at}.line"),
-            format!("a feature line number 1..6, got {}", spec.line),
+            format!(
+                "a line number 1..{n} of target {}, got {}",
+                spec.target, spec.line
+            ),
         ));
     }
     if spec.points.len() > MAX_POINTS_PER_LINE {
@@ -126,35 +234,14 @@ pub fn validate_vanishing(
     let mut targets = Vec::new();
     let mut target_index = HashMap::new();
     for (i, t) in m.targets.iter().enumerate() {
-        match t {
-            TargetSpec::LineTarget {
-                id,
-                length,
-                spacing,
-            } => {
-                if spacing >= length {
-                    return Err(InputError::new(
-                        format!("targets[{i}].spacing"),
-                        format!(
-                            "a spacing L2 smaller than the length L1 = {length} m, got {spacing}"
-                        ),
-                    ));
-                }
-                target_index.insert(id.as_str(), targets.len());
-                targets.push(LineTargetDef {
-                    id: id.clone(),
-                    length: *length,
-                    spacing: *spacing,
-                });
-            }
-            _ => {
-                return Err(InputError::new(
-                    format!("targets[{i}].type"),
-                    "line_target (the vanishing method uses only line targets)",
-                ))
-            }
-        }
+        let layout = line_layout(t, &format!("targets[{i}]"))?;
+        target_index.insert(t.id(), targets.len());
+        targets.push(LineTargetDef {
+            id: t.id().to_string(),
+            layout,
+        });
     }
+    let lines_of: Vec<usize> = targets.iter().map(|t| t.layout.len()).collect();
     if targets.len() < 2 {
         return Err(InputError::new(
             "targets",
@@ -223,7 +310,14 @@ pub fn validate_vanishing(
             let mut obs = Vec::new();
             for (i, s) in specs.iter().enumerate() {
                 let at = format!("frames[0].lines.{cam}[{i}]");
-                obs.push(line_obs(s, &at, &cameras[ci].camera, cam, &target_index)?);
+                obs.push(line_obs(
+                    s,
+                    &at,
+                    &cameras[ci].camera,
+                    cam,
+                    &target_index,
+                    &lines_of,
+                )?);
             }
             unique_lines(&obs, &format!("frames[0].lines.{cam}"))?;
             if let Some(o) = obs.iter().position(|o| o.target != obs[0].target) {
@@ -289,7 +383,14 @@ pub fn validate_vanishing(
         let mut lines = Vec::new();
         for (i, s) in r.lines.iter().enumerate() {
             let li = format!("{at}.lines[{i}]");
-            let o = line_obs(s, &li, &auxiliary.camera, &auxiliary.id, &target_index)?;
+            let o = line_obs(
+                s,
+                &li,
+                &auxiliary.camera,
+                &auxiliary.id,
+                &target_index,
+                &lines_of,
+            )?;
             if !pair.contains(&o.target) {
                 return Err(InputError::new(
                     format!("{li}.target"),

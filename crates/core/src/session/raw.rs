@@ -88,6 +88,24 @@ pub enum TargetSpec {
         length: f64,
         spacing: f64,
     },
+    /// Thin printed lines (vanishing method): `lines_x` lines along the sheet's `x`,
+    /// `lines_y` along its `y`, each `length` long and centred, a group's lines
+    /// `spacing` apart, strokes `stroke` wide (m).
+    LineGrid {
+        id: String,
+        length: f64,
+        spacing: f64,
+        lines_x: u32,
+        lines_y: u32,
+        stroke: f64,
+    },
+    /// Thin printed lines at explicit places: segments `[[x0, y0], [x1, y1]]` (m) in
+    /// sheet coordinates, each along the sheet's `x` or `y`, strokes `stroke` wide.
+    LineSegments {
+        id: String,
+        segments: Vec<[[f64; 2]; 2]>,
+        stroke: f64,
+    },
     /// Points of known coordinates (m) in the target's own frame: a rigid body.
     Points {
         id: String,
@@ -96,11 +114,23 @@ pub enum TargetSpec {
 }
 
 impl TargetSpec {
+    /// A target of the vanishing method (two orthogonal groups of parallel lines).
+    pub fn is_line_target(&self) -> bool {
+        matches!(
+            self,
+            TargetSpec::LineTarget { .. }
+                | TargetSpec::LineGrid { .. }
+                | TargetSpec::LineSegments { .. }
+        )
+    }
+
     pub fn id(&self) -> &str {
         match self {
             TargetSpec::Aprilgrid { id, .. }
             | TargetSpec::Apriltags { id, .. }
             | TargetSpec::LineTarget { id, .. }
+            | TargetSpec::LineGrid { id, .. }
+            | TargetSpec::LineSegments { id, .. }
             | TargetSpec::Points { id, .. } => id,
         }
     }

@@ -331,7 +331,9 @@ pub fn resolve_points(
                         break;
                     }
                 }
-                TargetSpec::LineTarget { .. } => {}
+                TargetSpec::LineTarget { .. }
+                | TargetSpec::LineGrid { .. }
+                | TargetSpec::LineSegments { .. } => {}
             }
         }
         out.insert(&id, kind);
@@ -458,6 +460,17 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
                 positive("length", *length)?;
                 positive("spacing", *spacing)?;
             }
+            TargetSpec::LineGrid {
+                length,
+                spacing,
+                stroke,
+                ..
+            } => {
+                positive("length", *length)?;
+                positive("spacing", *spacing)?;
+                positive("stroke", *stroke)?;
+            }
+            TargetSpec::LineSegments { stroke, .. } => positive("stroke", *stroke)?,
             TargetSpec::Points { points, .. } => {
                 if points.len() < 4 {
                     return Err(InputError::new(
@@ -499,12 +512,8 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
             !f.line_targets.is_empty(),
         )?;
     }
-    if m.method == Method::Motion
-        && m.targets
-            .iter()
-            .any(|t| matches!(t, TargetSpec::LineTarget { .. }))
-    {
-        return Err(InputError::new("targets", "no line_target in a motion-method session (line targets belong to method \"vanishing\")"));
+    if m.method == Method::Motion && m.targets.iter().any(TargetSpec::is_line_target) {
+        return Err(InputError::new("targets", "no line_target, line_grid or line_segments in a motion-method session (line targets belong to method \"vanishing\")"));
     }
 
     // Frames: observations per camera, every number checked.

@@ -19,6 +19,7 @@
 //! `l1 = P1P2, l2 = P2P3, l3 = P3P4, l4 = P4P5, l5 = P5P6, l6 = P6P1`; lines `l1, l3, l5` run
 //! along `z` (their vanishing point gives the target's `z` axis), `l2, l4, l6` along `x`.
 
+use super::line_layout::LineLayout;
 use crate::geometry::Vec3;
 
 /// Number of feature lines (and corners) of a line target.
@@ -53,6 +54,11 @@ impl LineTarget {
     pub fn segment(&self, m: usize) -> (Vec3, Vec3) {
         let c = self.corners();
         (c[m], c[(m + 1) % LINES])
+    }
+
+    /// This L as one [`LineLayout`] among the vanishing method's layouts.
+    pub fn layout(&self) -> LineLayout {
+        LineLayout::l_target(self.length, self.spacing)
     }
 
     /// The other line through corner `m`: `l(m-1)`, with `l0 = l6` (eq. 20).

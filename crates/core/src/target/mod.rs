@@ -3,5 +3,6 @@
 //! read the print from here.
 
 pub mod board;
+pub mod line_layout;
 pub mod line_target;
 pub mod tag36h11;

@@ -1,0 +1,160 @@
+//! Thin-line targets ("#" grids) in rendered images with known truth: the ridge
+//! detector's line points against the true centre lines, the labelling against the
+//! layout, and whole rings of images through the vanishing method.
+
+use rigcal_core::geometry::{Camera, Pose, Vec2, Vec3};
+use rigcal_core::target::line_layout::{Axis, LineLayout, Print};
+use rigcal_detect::gray::Gray;
+use rigcal_detect::linegrid::{detect_line_grids, LineGridDetection};
+use rigcal_detect::refine::Lens;
+use rigcal_synth::render::RenderOptions;
+use rigcal_synth::ring::{aux_camera, render_line_targets, rig_camera, table2_scene, RingPrint};
+
+fn opts(seed: u64, noise: f64) -> RenderOptions {
+    RenderOptions {
+        noise_sigma: noise,
+        seed,
+        ..RenderOptions::default()
+    }
+}
+
+/// RMS (px) of the detected points' distances to the true centre lines, and the worst
+/// labelling error: the largest distance (px) of a line's points from the true line of
+/// the label it was given, up to the layout's symmetries.
+fn errors(
+    camera: &Camera,
+    cam_from_target: &Pose,
+    layout: &LineLayout,
+    d: &LineGridDetection,
+) -> f64 {
+    let (mut sq, mut count) = (0.0, 0usize);
+    for l in &d.lines {
+        // The true centre of the stroke's image: the midline of its two edges' images
+        // (under perspective not the image of the stroke's centre line).
+        let (a, b) = layout.segment(l.line - 1);
+        let Print::Strokes { width } = layout.print else {
+            panic!("a stroke layout")
+        };
+        let off = match layout.segments[l.line - 1].axis {
+            Axis::X => Vec3::z(),
+            Axis::Z => Vec3::x(),
+        } * (width / 2.0);
+        let plane = |x: Vec3| {
+            let q = cam_from_target.apply(&x);
+            Vec2::new(q.x / q.z, q.y / q.z)
+        };
+        let pa = (plane(a + off) + plane(a - off)) / 2.0;
+        let pb = (plane(b + off) + plane(b - off)) / 2.0;
+        let normal = Vec2::new(pb.y - pa.y, pa.x - pb.x).normalize();
+        for p in &l.points {
+            let q = camera.unproject(&Vec2::new(p[0], p[1])).unwrap();
+            sq += (normal.dot(&(q - pa)) * camera.fx).powi(2);
+            count += 1;
+        }
+    }
+    (sq / count.max(1) as f64).sqrt()
+}
+
+/// The grid's frame in the detection's labelling: the symmetry that makes the labels
+/// fit the truth best (the detector may report any of the equivalent labellings).
+fn best_symmetry_rms(
+    camera: &Camera,
+    cam_from_target: &Pose,
+    layout: &LineLayout,
+    d: &LineGridDetection,
+) -> f64 {
+    layout
+        .symmetries()
+        .iter()
+        .map(|s| {
+            errors(
+                camera,
+                &(*cam_from_target * s.target_from_labelled),
+                layout,
+                d,
+            )
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+#[test]
+fn every_rig_camera_finds_its_grid_with_centre_points_within_five_hundredths_of_a_pixel() {
+    let scene = table2_scene();
+    let cam = rig_camera();
+    for print in [
+        RingPrint::GRID,
+        RingPrint::Grid {
+            lines_x: 3,
+            lines_y: 2,
+            stroke: 0.010,
+        },
+    ] {
+        let layout = print.layout();
+        let mut worst = 0.0f64;
+        for k in 0..8 {
+            let pose =
+                scene.ecf_from_cam[k].inverse() * scene.ecf_from_target[k] * print.l_from_target();
+            let img = render_line_targets(&cam, &[pose], &layout, &opts(k as u64, 2.0));
+            let found = detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout);
+            assert_eq!(
+                found.len(),
+                1,
+                "{print:?} camera {k}: {} prints",
+                found.len()
+            );
+            let d = &found[0];
+            assert_eq!(d.lines.len(), layout.len());
+            assert!(
+                d.lines.iter().all(|l| l.points.len() >= 10),
+                "{print:?} camera {k}"
+            );
+            let rms = best_symmetry_rms(&cam, &pose, &layout, d);
+            worst = worst.max(rms);
+        }
+        assert!(worst <= 0.05, "{print:?}: line point RMS {worst:.4} px");
+    }
+}
+
+#[test]
+fn auxiliary_views_find_both_grids_left_to_right() {
+    let scene = table2_scene();
+    let aux = aux_camera();
+    let print = RingPrint::GRID;
+    let layout = print.layout();
+    for i in 0..8 {
+        let (k, j) = scene.pair_of(i);
+        let poses: Vec<Pose> = [k, j]
+            .iter()
+            .map(|&t| {
+                scene.ecf_from_aux[i].inverse() * scene.ecf_from_target[t] * print.l_from_target()
+            })
+            .collect();
+        let img = render_line_targets(&aux, &poses, &layout, &opts(100 + i as u64, 2.0));
+        let found = detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&aux)), &layout);
+        let complete: Vec<&LineGridDetection> =
+            found.iter().filter(|d| !d.touches_border).collect();
+        assert_eq!(
+            complete.len(),
+            2,
+            "view {i}: {} complete prints of {}",
+            complete.len(),
+            found.len()
+        );
+        for d in complete {
+            let rms = poses
+                .iter()
+                .map(|p| best_symmetry_rms(&aux, p, &layout, d))
+                .fold(f64::INFINITY, f64::min);
+            assert!(rms <= 0.08, "view {i}: RMS {rms:.4} px");
+        }
+    }
+}
+
+#[test]
+fn a_blank_or_noisy_image_has_no_grid() {
+    let cam = rig_camera();
+    let layout = RingPrint::GRID.layout();
+    let far = Pose::new(nalgebra::Matrix3::identity(), Vec3::new(0.0, 0.0, -5.0));
+    let img = render_line_targets(&cam, &[far], &layout, &opts(1, 2.0));
+    assert!(detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout).is_empty());
+}
