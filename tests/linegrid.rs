@@ -158,3 +158,114 @@ fn a_blank_or_noisy_image_has_no_grid() {
     let img = render_line_targets(&cam, &[far], &layout, &opts(1, 2.0));
     assert!(detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout).is_empty());
 }
+
+fn errors_vs_truth(
+    doc: &rigcal_core::result::ResultDocument,
+    truth: &rigcal_synth::Truth,
+) -> (f64, f64) {
+    let (mut mm, mut deg) = (0.0f64, 0.0f64);
+    for (cam, t) in &truth.ref_from_cam {
+        let e = doc
+            .extrinsics
+            .iter()
+            .find(|e| &e.value.camera == cam)
+            .unwrap_or_else(|| panic!("no extrinsic for {cam}: {:?}", doc.reasons));
+        let (r, d) = e.value.pose().distance(t);
+        mm = mm.max(d * 1e3);
+        deg = deg.max(r.to_degrees());
+    }
+    (mm, deg)
+}
+
+#[test]
+fn grid_detections_recover_the_ring_exactly_whichever_way_round_each_view_labelled_them() {
+    use rand::SeedableRng;
+    let print = RingPrint::GRID;
+    let layout = print.layout();
+    let syms = layout.symmetries();
+    assert_eq!(syms.len(), 4);
+    let mut rng = rand::rngs::StdRng::seed_from_u64(3);
+    let (mut m, truth) = rigcal_synth::ring::generate_print(
+        &mut rng,
+        [0.0, 0.0],
+        &rig_camera(),
+        &aux_camera(),
+        &table2_scene(),
+        print,
+    );
+    // Relabel each auxiliary view's targets by a symmetry, as a detector that cannot tell
+    // which way round a "#" lies would: line m reported as the line the symmetry puts there.
+    for (i, r) in m.ring.iter_mut().enumerate() {
+        for (k, t) in r.targets.clone().iter().enumerate() {
+            let g = &syms[if std::env::var_os("NOREL").is_some() {
+                0
+            } else {
+                (i + k) % 4
+            }];
+            for l in r.lines.iter_mut().filter(|l| &l.target == t) {
+                let physical = l.line as usize - 1;
+                let label = g.line_of.iter().position(|&p| p == physical).unwrap();
+                l.line = label as u8 + 1;
+            }
+        }
+    }
+    let session = rigcal_core::session::from_manifest(m).unwrap();
+    let doc = rigcal_engine::pipeline::calibrate(&session, &Default::default());
+    // Not failed, right, and every view's labelling found; a near-tie of the closure
+    // search (some of the 4⁸ relative labellings close within millimetres) is reported
+    // as `line_labelling_ambiguous`, so the status may be degraded.
+    assert_ne!(
+        doc.status,
+        rigcal_core::result::Status::Failed,
+        "{:?}",
+        doc.reasons
+    );
+    let (mm, deg) = errors_vs_truth(&doc, &truth);
+    // Not bit-exact: the line bundle models a stroke's image as the line through its
+    // end points' band centres, the renderer's band centre bends very slightly between
+    // (second order in the stroke width: 0.019 mm here).
+    assert!(mm < 0.03 && deg < 0.001, "{mm} mm {deg}°");
+    let report = &doc.vanishing.as_ref().unwrap().labelling;
+    assert_eq!(report.len(), 16);
+    for c in report {
+        let i = c.ring_index as usize;
+        let k = usize::from(c.target != format!("t{}", i + 1));
+        assert_eq!(c.rotation_deg, syms[(i + k) % 4].degrees, "{c:?}");
+    }
+}
+
+#[test]
+fn a_ring_of_grids_calibrates_from_images() {
+    let print = RingPrint::GRID;
+    let look = rigcal_synth::ring::RingImages {
+        print,
+        nuisance: None,
+    };
+    let (m, truth, files) = rigcal_synth::ring::image_session_with(
+        &rig_camera(),
+        &aux_camera(),
+        &table2_scene(),
+        &look,
+        0.0,
+        1,
+    );
+    let session = rigcal_core::session::from_manifest(m).unwrap();
+    let source = rigcal_engine::pipeline::detection::MemorySource(files.into_iter().collect());
+    let doc = rigcal_engine::pipeline::run(
+        &session,
+        &source,
+        &Default::default(),
+        &rigcal_engine::pipeline::Silent,
+    )
+    .unwrap();
+    let (mm, deg) = errors_vs_truth(&doc, &truth);
+    // Measured 0.34 mm / 0.008° (the detector's own error; the target is
+    // 0.02 mm / 0.001°, not met yet).
+    assert_ne!(
+        doc.status,
+        rigcal_core::result::Status::Failed,
+        "{:?}",
+        doc.reasons
+    );
+    assert!(mm < 0.5 && deg < 0.02, "{mm} mm {deg}°");
+}

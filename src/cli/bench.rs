@@ -62,6 +62,10 @@ pub enum Command {
         /// Render the 16 images of every trial and go through the line-target detector.
         #[arg(long)]
         images: bool,
+        /// The print on the targets with --images: `l` (Wu's filled L) or `line-grid`
+        /// (a "#" of 3 × 3 thin lines, 12 mm strokes, found as ridges).
+        #[arg(long, default_value = "l")]
+        target: String,
         /// Placement study (sampled points only): ground distance camera → target (m).
         #[arg(long)]
         target_distance: Option<f64>,
@@ -190,8 +194,17 @@ pub fn run(c: Command) -> Result<i32> {
             aux_pitch,
             aux_views,
             noise_on,
+            target,
         } => {
             use rigcal_bench::ring::NoiseOn;
+            let print = match target.as_str() {
+                "l" => rigcal_synth::ring::RingPrint::FilledL,
+                "line-grid" => rigcal_synth::ring::RingPrint::GRID,
+                other => return Err(anyhow!("--target: l or line-grid, got {other:?}")),
+            };
+            if !images && print != rigcal_synth::ring::RingPrint::FilledL {
+                return Err(anyhow!("--target line-grid renders images: add --images"));
+            }
             let on = match noise_on.as_str() {
                 "both" => NoiseOn::Both,
                 "rig" => NoiseOn::Rig,
@@ -225,7 +238,7 @@ pub fn run(c: Command) -> Result<i32> {
                     ));
                 }
                 println!("From rendered images through the line-target detector; σ is image noise in grey levels (of 255).");
-                rigcal_bench::ring::ring_accuracy_images(&noise, trials, seed)
+                rigcal_bench::ring::ring_accuracy_images(&noise, trials, seed, print)
             } else {
                 if study {
                     println!(

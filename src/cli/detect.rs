@@ -3,6 +3,7 @@
 use anyhow::{anyhow, Context, Result};
 use clap::builder::RangedU64ValueParser;
 use rigcal_core::session::{camera_from_spec, CameraSpec, TargetSpec};
+use rigcal_core::target::line_layout::Print as LinePrint;
 use rigcal_detect::{detect_tags, DetectOptions};
 use rigcal_engine::pipeline::detection::{decode_gray, DEFAULT_MAX_IMAGE_PIXELS};
 use serde_json::{json, Value};
@@ -40,7 +41,7 @@ pub fn run(a: Args) -> Result<i32> {
     let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
         Ok(t) => t,
         Err(_) => vec![serde_json::from_slice::<TargetSpec>(&text).map_err(|e| {
-            anyhow!("--target: a target object (aprilgrid | apriltags | line_target) or an array of them: {e}")
+            anyhow!("--target: a target object (aprilgrid | apriltags | line_target | line_grid | line_segments) or an array of them: {e}")
         })?],
     };
     let camera = match &a.camera {
@@ -51,11 +52,22 @@ pub fn run(a: Args) -> Result<i32> {
         }
         None => None,
     };
-    // Line targets (Wu's L) are found by shape, whatever their size; their lines and
-    // corners are reported per L found, left to right.
-    let lines_only = targets
-        .iter()
-        .all(|t| matches!(t, TargetSpec::LineTarget { .. }));
+    // Line targets (Wu's L, thin-line grids) are found by shape, whatever their size;
+    // their lines are reported per print found, left to right, per target.
+    let lines_only = targets.iter().all(TargetSpec::is_line_target);
+    let layouts = if lines_only {
+        targets
+            .iter()
+            .enumerate()
+            .map(|(i, t)| {
+                rigcal_core::session::line_layout(t, &format!("targets[{i}]"))
+                    .map(|l| (t.id().to_string(), l))
+                    .map_err(|e| anyhow!("--target: {e}"))
+            })
+            .collect::<Result<Vec<_>>>()?
+    } else {
+        Vec::new()
+    };
     // The detector's decoder table is built once per thread (as a worker keeps it), not
     // inside the first image's `elapsed_ms`.
     rigcal_detect::quads::warm_up(&DetectOptions::default().quads).map_err(|e| anyhow!(e))?;
@@ -68,8 +80,19 @@ pub fn run(a: Args) -> Result<i32> {
             let start = std::time::Instant::now();
             let v = if lines_only {
                 let lens = rigcal_detect::refine::Lens(camera.as_ref());
-                let found = rigcal_detect::linetarget::detect_line_targets(&gray, lens);
-                json!({ "line_targets": found })
+                let mut per_target = Vec::new();
+                for (id, layout) in &layouts {
+                    let found = match layout.print {
+                        LinePrint::Outline => {
+                            json!(rigcal_detect::linetarget::detect_line_targets(&gray, lens))
+                        }
+                        LinePrint::Strokes { .. } => json!(
+                            rigcal_detect::linegrid::detect_line_grids(&gray, lens, layout)
+                        ),
+                    };
+                    per_target.push(json!({"target": id, "found": found}));
+                }
+                json!({ "line_targets": per_target })
             } else {
                 let opts = DetectOptions {
                     threads,

@@ -71,16 +71,32 @@ pub fn ring_accuracy_layout(
 }
 
 /// The same from rendered images through the line-target detector: the noise is
-/// grey-level noise of the 8-bit images (σ in grey levels), every trial 16 new renders.
-pub fn ring_accuracy_images(noise_grey: &[f64], trials: usize, seed: u64) -> Vec<RingRow> {
+/// grey-level noise of the 8-bit images (σ in grey levels), every trial 16 new renders
+/// of `print` on the targets.
+pub fn ring_accuracy_images(
+    noise_grey: &[f64],
+    trials: usize,
+    seed: u64,
+    print: rigcal_synth::ring::RingPrint,
+) -> Vec<RingRow> {
+    let look = rigcal_synth::ring::RingImages {
+        print,
+        nuisance: None,
+    };
     let (rig, aux, scene) = (
         rigcal_synth::ring::rig_camera(),
         rigcal_synth::ring::aux_camera(),
         rigcal_synth::ring::table2_scene(),
     );
     study(noise_grey, trials, |sigma, k| {
-        let (manifest, truth, files) =
-            rigcal_synth::ring::image_session(&rig, &aux, &scene, sigma, seed + k as u64);
+        let (manifest, truth, files) = rigcal_synth::ring::image_session_with(
+            &rig,
+            &aux,
+            &scene,
+            &look,
+            sigma,
+            seed + k as u64,
+        );
         let session = rigcal_core::session::from_manifest(manifest).ok()?;
         let source = rigcal_engine::pipeline::detection::MemorySource(files.into_iter().collect());
         let doc = match rigcal_engine::pipeline::run(

@@ -301,6 +301,24 @@ pub struct VanishingReport {
     pub pairs: Vec<PairReport>,
     pub cameras: Vec<VanishingCamera>,
     pub ring_views: Vec<RingViewReport>,
+    /// Symmetric line grids: which way round each was labelled in each auxiliary view.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub labelling: Vec<LabellingReport>,
+}
+
+/// The labelling chosen for a symmetric target in one auxiliary view.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LabellingReport {
+    pub ring_index: i64,
+    pub target: String,
+    /// Rotation about the target's centre relative to the detected labelling.
+    pub rotation_deg: u32,
+    /// `closure`, `rig_compactness` or `undetermined`.
+    pub criterion: String,
+    /// Runner-up score over best; `None` when there is no runner-up.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub margin: Option<f64>,
+    pub clear: bool,
 }
 
 #[derive(Clone, Debug, Serialize, Deserialize)]

@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use rigcal_core::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
-use rigcal_core::target::line_layout::{LineLayout, Print};
+use rigcal_core::target::line_layout::{Axis, LineLayout, Print};
 use rigcal_core::target::line_target::{LineTarget, LINES};
 use std::collections::BTreeMap;
 
@@ -218,8 +218,9 @@ pub fn ring_scene(layout: &RingLayout) -> RingScene {
     }
 }
 
-/// Points along every feature line of `target` as `camera` at `cam_from_target` sees them:
-/// one per pixel of image length, noisy, those outside the image (8 px margin) dropped.
+/// Points along every feature line of `target` as `camera` at `cam_from_target` sees them
+/// (a stroke's: the centre of its image band): one per pixel of image length, noisy,
+/// those outside the image (8 px margin) dropped.
 pub fn sample_lines(
     camera: &Camera,
     cam_from_target: &Pose,
@@ -241,7 +242,19 @@ pub fn sample_lines(
             let points = (0..n)
                 .filter_map(|i| {
                     let s = (i as f64 + 0.5) / n as f64;
-                    let p = proj(a + (b - a) * s)?;
+                    // A stroke is seen as the band between its edges' images: its centre
+                    // (what a ridge detector measures, and the bundle models).
+                    let x = a + (b - a) * s;
+                    let p = match (target.print, target.segments[m].axis) {
+                        (Print::Outline, _) => proj(x)?,
+                        (Print::Strokes { width }, axis) => {
+                            let n = match axis {
+                                Axis::X => Vec3::z(),
+                                Axis::Z => Vec3::x(),
+                            } * (width / 2.0);
+                            (proj(x + n)? + proj(x - n)?) / 2.0
+                        }
+                    };
                     let p = if noise_px > 0.0 {
                         p + Vec2::new(normal.sample(rng), normal.sample(rng))
                     } else {

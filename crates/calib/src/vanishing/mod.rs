@@ -226,7 +226,7 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
         findings.push(finding(
             ReasonCode::LineLabellingAmbiguous,
             format!(
-                "ring[{ri}] (index {}), target {}: the grid is symmetric and which way round it was photographed is not decided ({}: runner-up only {:.2}× worse); kept as detected. Photograph the ring so that it closes, or print an orientation mark",
+                "ring[{ri}] (index {}), target {}: the grid is symmetric and which way round it was photographed is not clearly decided ({}: margin {:.2}, clear from 1); the most consistent labelling is used. Photograph each pair twice, or print an orientation mark",
                 input.ring[ri].index,
                 tname(c.target),
                 c.criterion.name(),

@@ -25,8 +25,9 @@ pub struct LineTargetDef {
 /// Lines per group and per target above which a session is refused.
 pub const MAX_LINES_PER_GROUP: u32 = 64;
 
-/// The layout of a line target spec; structural problems name their field.
-fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
+/// The layout of a line target spec (`at`: its field, e.g. `targets[2]`); structural
+/// problems name their field.
+pub fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
     let layout = match t {
         TargetSpec::LineTarget {
             length, spacing, ..

@@ -6,7 +6,7 @@ mod raw;
 mod slots;
 mod validate;
 
-pub use lines::{LineObs, LineTargetDef, RingView, VanishingInput};
+pub use lines::{line_layout, LineObs, LineTargetDef, RingView, VanishingInput};
 pub use raw::*;
 pub use slots::{image_slots, undetected_images, ImageSlot};
 pub use validate::{

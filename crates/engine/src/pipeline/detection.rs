@@ -9,8 +9,10 @@ use rigcal_core::result::{DetectionReport, ImageReport};
 use rigcal_core::session::{
     from_manifest, image_slots, ImageSlot, LineSpec, Method, ObservationSpec, Session, TargetSpec,
 };
+use rigcal_core::target::line_layout::{LineLayout, Print as LinePrint};
 use rigcal_detect::imageio;
-use rigcal_detect::linetarget::{detect_line_targets, LineTargetDetection};
+use rigcal_detect::linegrid::detect_line_grids;
+use rigcal_detect::linetarget::detect_line_targets;
 use rigcal_detect::refine::Lens;
 use rigcal_detect::{detect_tags, gray::Gray, DetectOptions};
 use std::path::PathBuf;
@@ -337,24 +339,76 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
 }
 
 /// Size of a detected L in the image (its corners' spread), to prefer the nearest.
-fn spread(d: &LineTargetDetection) -> f64 {
-    let c = &d.corners;
-    (c[0][0] - c[3][0]).hypot(c[0][1] - c[3][1])
+/// One print of a line target found in an image, whatever its layout.
+struct Print {
+    lines: Vec<(usize, Vec<[f64; 2]>)>,
+    /// Raw-pixel `u` of its centre (prints are named left to right).
+    centre_u: f64,
+    /// Its extent (px): the largest of several complete prints is the nearest.
+    size: f64,
+    /// Cut by the image border (a grid whose lines end at the border).
+    cut: bool,
 }
 
-fn line_specs(d: &LineTargetDetection, target: &str) -> Vec<LineSpec> {
-    d.lines
+/// Every print of `layout` in the image: the filled L by its outline, thin lines as
+/// ridges.
+fn find_prints(gray: &Gray, lens: Lens, layout: &LineLayout) -> Vec<Print> {
+    match layout.print {
+        LinePrint::Outline => detect_line_targets(gray, lens)
+            .into_iter()
+            .map(|d| {
+                let c = &d.corners;
+                Print {
+                    centre_u: c.iter().map(|p| p[0]).sum::<f64>() / c.len() as f64,
+                    size: (c[0][0] - c[3][0]).hypot(c[0][1] - c[3][1]),
+                    cut: false, // the outline detector refuses prints touching the border
+                    lines: d.lines.into_iter().map(|l| (l.line, l.points)).collect(),
+                }
+            })
+            .collect(),
+        LinePrint::Strokes { .. } => detect_line_grids(gray, lens, layout)
+            .into_iter()
+            .map(|d| {
+                let pts = d.lines.iter().flat_map(|l| l.points.iter());
+                let (lo, hi) = pts.fold(([f64::MAX; 2], [f64::MIN; 2]), |(lo, hi), p| {
+                    (
+                        [lo[0].min(p[0]), lo[1].min(p[1])],
+                        [hi[0].max(p[0]), hi[1].max(p[1])],
+                    )
+                });
+                Print {
+                    centre_u: d.centre[0],
+                    size: (hi[0] - lo[0]).hypot(hi[1] - lo[1]),
+                    cut: d.touches_border,
+                    lines: d.lines.into_iter().map(|l| (l.line, l.points)).collect(),
+                }
+            })
+            .collect(),
+    }
+}
+
+fn what(layout: &LineLayout) -> &'static str {
+    match layout.print {
+        LinePrint::Outline => "a line target (a dark L on a light ground)",
+        LinePrint::Strokes { .. } => "a target of thin lines in two orthogonal groups",
+    }
+}
+
+fn line_specs(p: &Print, target: &str) -> Vec<LineSpec> {
+    p.lines
         .iter()
-        .map(|l| LineSpec {
+        .map(|(line, points)| LineSpec {
             target: target.to_string(),
-            line: l.line as u8,
-            points: l.points.clone(),
+            line: *line as u8,
+            points: points.clone(),
         })
         .collect()
 }
 
-/// Line targets in a rig image (the one `frames[0].line_targets` names; the largest L
-/// if several show) or in a ring image (its two targets, named left to right).
+/// Line targets in a rig image (the one `frames[0].line_targets` names: the largest
+/// complete print of its layout if several show) or in a ring image (its two targets:
+/// the complete prints of their layouts, named left to right; a print cut by the
+/// border, such as a third target at the edge, is ignored).
 fn line_slot(
     session: &Session,
     slot: &ImageSlot,
@@ -364,6 +418,13 @@ fn line_slot(
         .vanishing
         .as_ref()
         .ok_or("a vanishing session (internal: no vanishing input)")?;
+    let layout_of = |id: &str| {
+        v.targets
+            .iter()
+            .find(|t| t.id == id)
+            .map(|t| &t.layout)
+            .ok_or_else(|| format!("a line target named {id} (internal: validated ids)"))
+    };
     let frame = session.manifest.frames.first();
     match slot.frame_pos {
         Some(_) => {
@@ -379,13 +440,21 @@ fn line_slot(
                         slot.camera
                     )
                 })?;
-            let mut found = detect_line_targets(gray, Lens(Some(camera)));
-            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
+            let layout = layout_of(target)?;
+            let found = find_prints(gray, Lens(Some(camera)), layout);
             let n = found.len();
-            let d = found
-                .first()
-                .ok_or("expected a line target (a dark L on a light ground), found none")?;
-            Ok((line_specs(d, target), n))
+            let best = found
+                .iter()
+                .filter(|p| !p.cut)
+                .max_by(|a, b| a.size.total_cmp(&b.size));
+            match best {
+                Some(p) => Ok((line_specs(p, target), n)),
+                None if n > 0 => Err(format!(
+                    "expected {} (target {target}) fully in view, found {n} cut by the image border",
+                    what(layout)
+                )),
+                None => Err(format!("expected {}, found none", what(layout))),
+            }
         }
         None => {
             let r = session
@@ -394,25 +463,36 @@ fn line_slot(
                 .iter()
                 .find(|r| r.index == slot.frame)
                 .ok_or("a ring view")?;
-            let mut found = detect_line_targets(gray, Lens(Some(&v.auxiliary.camera)));
-            if found.len() < 2 {
-                return Err(format!(
-                    "expected the two line targets {} and {} in view, found {}",
-                    r.targets[0],
-                    r.targets[1],
-                    found.len()
-                ));
+            let (a, b) = (&r.targets[0], &r.targets[1]);
+            let (la, lb) = (layout_of(a)?, layout_of(b)?);
+            let lens = Lens(Some(&v.auxiliary.camera));
+            let mut found = find_prints(gray, lens, la);
+            if lb != la {
+                found.extend(find_prints(gray, lens, lb));
             }
             let n = found.len();
-            // The two largest, then left to right (the order ring[].targets names them).
-            found.sort_by(|a, b| spread(b).total_cmp(&spread(a)));
-            found.truncate(2);
-            found.sort_by(|a, b| {
-                let cx = |d: &LineTargetDetection| d.corners.iter().map(|c| c[0]).sum::<f64>();
-                cx(a).total_cmp(&cx(b))
-            });
-            let mut lines = line_specs(&found[0], &r.targets[0]);
-            lines.extend(line_specs(&found[1], &r.targets[1]));
+            let mut complete: Vec<Print> = found.into_iter().filter(|p| !p.cut).collect();
+            if complete.len() < 2 {
+                return Err(format!(
+                    "expected the two line targets {a} and {b} fully in view, found {} complete print(s) ({} cut by the image border)",
+                    complete.len(),
+                    n - complete.len()
+                ));
+            }
+            // More than two complete prints: the adjacent pair nearest the image centre
+            // (the pair the view was taken of), then left to right.
+            complete.sort_by(|p, q| p.centre_u.total_cmp(&q.centre_u));
+            let mid = gray.width as f64 / 2.0;
+            let k = (0..complete.len() - 1)
+                .min_by(|&i, &j| {
+                    let off = |i: usize| {
+                        ((complete[i].centre_u + complete[i + 1].centre_u) / 2.0 - mid).abs()
+                    };
+                    off(i).total_cmp(&off(j))
+                })
+                .unwrap_or(0);
+            let mut lines = line_specs(&complete[k], a);
+            lines.extend(line_specs(&complete[k + 1], b));
             Ok((lines, n))
         }
     }

@@ -214,6 +214,18 @@ pub(super) fn calibrate(
                 .collect(),
             cameras: cams,
             ring_views,
+            labelling: sol
+                .labelling
+                .iter()
+                .map(|(ri, c)| LabellingReport {
+                    ring_index: session.manifest.ring[*ri].index,
+                    target: tname(c.target),
+                    rotation_deg: c.degrees,
+                    criterion: c.criterion.name().into(),
+                    margin: c.margin.is_finite().then_some(c.margin),
+                    clear: c.clear,
+                })
+                .collect(),
         }),
         initialisation,
         solver: Some(SolverReport {
