@@ -183,6 +183,9 @@ fn bilinear(f: &[f32], w: usize, x: f32, y: f32) -> Option<f32> {
 /// derivative, grey levels), each pixel at its best scale among `scales`.
 pub fn ridge_points(img: &Gray, scales: &[f32], min_strength: f32) -> Vec<RidgePoint> {
     let (w, h) = (img.width, img.height);
+    if w < 3 || h < 3 || img.data.len() != w * h {
+        return Vec::new(); // nothing to differentiate (and no border to keep)
+    }
     let mut best: Vec<Option<RidgePoint>> = vec![None; w * h];
     for &s in scales {
         for p in points_at(img, s, min_strength) {

@@ -606,23 +606,7 @@ impl Hall {
             nuisance.edge_cells,
             jitter,
         );
-        let gain = 1.0 + rng.gen_range(-1.0..=1.0) * nuisance.gain;
-        let offset = rng.gen_range(-1.0..=1.0) * nuisance.offset;
-        let w = camera.width as usize;
-        let (cx, cy) = (camera.cx, camera.cy);
-        let corner = (cx.max(camera.width as f64 - cx)).hypot(cy.max(camera.height as f64 - cy));
-        let vig = nuisance.vignetting;
-        quantise(
-            camera,
-            &value,
-            |k, x| {
-                let (u, v) = ((k % w) as f64, (k / w) as f64);
-                let r2 = ((u - cx).powi(2) + (v - cy).powi(2)) / (corner * corner);
-                gain * x * (1.0 - vig * r2) + offset
-            },
-            nuisance.noise,
-            &mut rng,
-        )
+        degrade(camera, &value, nuisance, &mut rng)
     }
 
     /// The session of images (paths as [`image_path`]), with its truth and per-image
@@ -751,6 +735,33 @@ impl Hall {
         }
         Ok(out.into_inner())
     }
+}
+
+/// What the camera does to the rendered grey levels: a per-image gain and offset drawn
+/// from `rng`, vignetting, sensor noise, 8 bits.
+pub(crate) fn degrade(
+    camera: &Camera,
+    value: &[f64],
+    nuisance: &Nuisance,
+    rng: &mut ChaCha8Rng,
+) -> image::GrayImage {
+    let gain = 1.0 + rng.gen_range(-1.0..=1.0) * nuisance.gain;
+    let offset = rng.gen_range(-1.0..=1.0) * nuisance.offset;
+    let w = camera.width as usize;
+    let (cx, cy) = (camera.cx, camera.cy);
+    let corner = (cx.max(camera.width as f64 - cx)).hypot(cy.max(camera.height as f64 - cy));
+    let vig = nuisance.vignetting;
+    quantise(
+        camera,
+        value,
+        |k, x| {
+            let (u, v) = ((k % w) as f64, (k / w) as f64);
+            let r2 = ((u - cx).powi(2) + (v - cy).powi(2)) / (corner * corner);
+            gain * x * (1.0 - vig * r2) + offset
+        },
+        nuisance.noise,
+        rng,
+    )
 }
 
 /// An empty frame.

@@ -379,7 +379,7 @@ pub fn render_line_targets_real(
     nuisance: &crate::hall::Nuisance,
     seed: u64,
 ) -> image::GrayImage {
-    use crate::render::{quantise, render_field, Hit};
+    use crate::render::{render_field, Hit};
     let first = cam_from_targets[0];
     let board_to_cam = first * target_from_board();
     let others: Vec<Pose> = cam_from_targets
@@ -439,27 +439,10 @@ pub fn render_line_targets_real(
             exact: false,
         }
     };
-    let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
     let jitter = rng.gen::<u64>();
     let value = render_field(camera, &field, nuisance.blur, nuisance.edge_cells, jitter);
-    let gain = 1.0 + rng.gen_range(-1.0..=1.0) * nuisance.gain;
-    let offset = rng.gen_range(-1.0..=1.0) * nuisance.offset;
-    let w = camera.width as usize;
-    let (cx, cy) = (camera.cx, camera.cy);
-    let corner = (cx.max(camera.width as f64 - cx)).hypot(cy.max(camera.height as f64 - cy));
-    let vig = nuisance.vignetting;
-    let mut qrng = rand_chacha::ChaCha8Rng::seed_from_u64(rng.gen());
-    quantise(
-        camera,
-        &value,
-        |k, x| {
-            let (u, v) = ((k % w) as f64, (k / w) as f64);
-            let r2 = ((u - cx).powi(2) + (v - cy).powi(2)) / (corner * corner);
-            gain * x * (1.0 - vig * r2) + offset
-        },
-        nuisance.noise,
-        &mut qrng,
-    )
+    crate::hall::degrade(camera, &value, nuisance, &mut rng)
 }
 
 /// How a ring is rendered as images: the print on its targets and, for realistic

@@ -231,6 +231,13 @@ pub fn resolve(
     // 2. Closure over the distinct pairs: per target, its label in each pair after the
     //    first it appears in, relative to that first.
     let firsts: Vec<usize> = first_of.values().copied().collect();
+    let first_views: Vec<View> = firsts
+        .iter()
+        .map(|&v| View {
+            targets: views[v].targets,
+            poses: views[v].poses,
+        })
+        .collect();
     let mut first_pair_of_target: Vec<Option<usize>> = vec![None; layouts.len()];
     let mut unknowns: Vec<(usize, usize)> = Vec::new(); // (view, slot)
     for &v in &firsts {
@@ -250,15 +257,8 @@ pub fn resolve(
             acc.checked_mul(n).filter(|x| *x <= MAX_CLOSURE_SEARCH)
         });
     let closure_cost = |labels: &[[usize; 2]]| {
-        let sub: Vec<View> = firsts
-            .iter()
-            .map(|&v| View {
-                targets: views[v].targets,
-                poses: views[v].poses,
-            })
-            .collect();
         let l: Vec<[usize; 2]> = firsts.iter().map(|&v| labels[v]).collect();
-        place(&syms, &sizes, reference_target, &sub, &l)
+        place(&syms, &sizes, reference_target, &first_views, &l)
             .closing
             .iter()
             .flatten()
@@ -267,15 +267,8 @@ pub fn resolve(
             .sqrt()
     };
     let loops = {
-        let sub: Vec<View> = firsts
-            .iter()
-            .map(|&v| View {
-                targets: views[v].targets,
-                poses: views[v].poses,
-            })
-            .collect();
-        let l = vec![[0usize; 2]; sub.len()];
-        place(&syms, &sizes, reference_target, &sub, &l)
+        let l = vec![[0usize; 2]; first_views.len()];
+        place(&syms, &sizes, reference_target, &first_views, &l)
             .closing
             .iter()
             .flatten()
@@ -332,15 +325,8 @@ pub fn resolve(
         }
     };
     let cameras = |labels: &[[usize; 2]]| -> Vec<Option<Vec3>> {
-        let sub: Vec<View> = firsts
-            .iter()
-            .map(|&v| View {
-                targets: views[v].targets,
-                poses: views[v].poses,
-            })
-            .collect();
         let l: Vec<[usize; 2]> = firsts.iter().map(|&v| labels[v]).collect();
-        place_cameras(&syms, reference_target, target_from_cam, &sub, &l)
+        place_cameras(&syms, reference_target, target_from_cam, &first_views, &l)
     };
     let rig = |labels: &mut Vec<[usize; 2]>| -> (Vec<f64>, Vec<bool>, f64) {
         let mut rig_margin = vec![f64::INFINITY; layouts.len()];

@@ -496,4 +496,39 @@ mod tests {
         m["method"] = json!("motion");
         assert_eq!(field(m), "auxiliary_camera");
     }
+
+    #[test]
+    fn thin_line_targets_parse_and_their_errors_name_the_field() {
+        let grid = json!({"id": "t1", "type": "line_grid", "length": 0.5, "spacing": 0.2, "lines_x": 3, "lines_y": 2, "stroke": 0.012});
+        let mut m = ring();
+        m["targets"][0] = grid.clone();
+        let s = parse_session(m.to_string().as_bytes()).unwrap();
+        assert_eq!(s.vanishing.unwrap().targets[0].layout.len(), 5);
+        for (key, value, expected) in [
+            ("lines_x", json!(1), "targets[0].lines_x"),
+            ("spacing", json!(0.3), "targets[0].spacing"),
+            ("stroke", json!(0.15), "targets[0].stroke"),
+            ("stroke", json!(-1.0), "targets[0].stroke"),
+        ] {
+            let mut m = ring();
+            m["targets"][0] = grid.clone();
+            m["targets"][0][key] = value;
+            assert_eq!(field(m), expected, "{key}");
+        }
+        // Line 6 of a 5-line grid.
+        let mut m = ring();
+        m["targets"][0] = grid.clone();
+        m["frames"][0]["lines"]["c1"][0]["line"] = json!(6);
+        assert_eq!(field(m), "frames[0].lines.c1[0].line");
+        let seg = |a: [f64; 2], b: [f64; 2]| json!([a, b]);
+        let mut m = ring();
+        m["targets"][1] = json!({"id": "t2", "type": "line_segments", "stroke": 0.01, "segments": [
+            seg([-0.2, 0.0], [0.2, 0.0]), seg([-0.2, 0.1], [0.2, 0.1]),
+            seg([0.0, -0.2], [0.1, 0.2])]});
+        assert_eq!(field(m), "targets[1].segments[2]");
+        let mut m = ring();
+        m["targets"][1] = json!({"id": "t2", "type": "line_segments", "stroke": 0.01, "segments": [
+            seg([-0.2, 0.0], [0.2, 0.0]), seg([0.0, -0.2], [0.0, 0.2])]});
+        assert_eq!(field(m), "targets[1].segments");
+    }
 }
