@@ -11,16 +11,11 @@ use rigcal_synth::render::RenderOptions;
 use rigcal_synth::ring::{aux_camera, render_line_targets, rig_camera, table2_scene, RingPrint};
 
 fn opts(seed: u64, noise: f64) -> RenderOptions {
-    RenderOptions {
-        noise_sigma: noise,
-        seed,
-        ..RenderOptions::default()
-    }
+    RenderOptions::noisy(seed, noise)
 }
 
-/// RMS (px) of the detected points' distances to the true centre lines, and the worst
-/// labelling error: the largest distance (px) of a line's points from the true line of
-/// the label it was given, up to the layout's symmetries.
+/// RMS (px) of the detected points' distances to the true centres of the lines they
+/// were labelled with.
 fn errors(
     camera: &Camera,
     cam_from_target: &Pose,

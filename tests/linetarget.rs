@@ -12,11 +12,7 @@ use rigcal_synth::ring::{aux_camera, render_line_targets, rig_camera, table2_sce
 use rigcal_synth::tagscene::Lens as SynthLens;
 
 fn opts(seed: u64, noise: f64) -> RenderOptions {
-    RenderOptions {
-        noise_sigma: noise,
-        seed,
-        ..RenderOptions::default()
-    }
+    RenderOptions::noisy(seed, noise)
 }
 
 /// Errors of one detection against the truth: max corner error (px), RMS distance of

@@ -45,6 +45,17 @@ impl Default for RenderOptions {
     }
 }
 
+impl RenderOptions {
+    /// The defaults with sensor noise `noise_sigma` (grey levels) drawn from `seed`.
+    pub fn noisy(seed: u64, noise_sigma: f64) -> Self {
+        Self {
+            noise_sigma,
+            seed,
+            ..Self::default()
+        }
+    }
+}
+
 /// The shade of a board point: `Some(white?)` on the print, `None` off it.
 pub type Shade<'a> = &'a (dyn Fn(f64, f64) -> Option<bool> + Sync);
 
