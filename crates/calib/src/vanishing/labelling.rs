@@ -86,35 +86,37 @@ struct Placement {
     closing: Vec<Option<f64>>,
 }
 
-fn place(
+/// `ta_from_tb` of view `v` under the labels `labels[v]`.
+fn relative(syms: &[Vec<Symmetry>], view: &View, labels: [usize; 2]) -> Pose {
+    let [a, b] = view.targets;
+    relabel(&view.poses[0], &syms[a][labels[0]]).inverse()
+        * relabel(&view.poses[1], &syms[b][labels[1]])
+}
+
+/// The chain from the reference target, breadth first over the views in order:
+/// `ref_from_target` per target it reaches, and which views it used (the others close
+/// loops or repeat a pair).
+fn chain(
     syms: &[Vec<Symmetry>],
-    sizes: &[f64],
     reference_target: usize,
     views: &[View],
-    chosen: &[[usize; 2]],
-) -> Placement {
-    let n = syms.len();
-    let rel = |v: usize| {
-        let view = &views[v];
-        let [a, b] = view.targets;
-        let pa = relabel(&view.poses[0], &syms[a][chosen[v][0]]);
-        let pb = relabel(&view.poses[1], &syms[b][chosen[v][1]]);
-        pa.inverse() * pb // ta_from_tb
-    };
-    let mut ref_from: Vec<Option<Pose>> = vec![None; n];
+    labels: &[[usize; 2]],
+) -> (Vec<Option<Pose>>, Vec<bool>) {
+    let mut ref_from: Vec<Option<Pose>> = vec![None; syms.len()];
     ref_from[reference_target] = Some(Pose::identity());
     let mut used = vec![false; views.len()];
-    // Breadth first over the views in order: the tree the chain uses.
     loop {
         let mut grew = false;
-        for v in 0..views.len() {
+        for (v, view) in views.iter().enumerate() {
             if used[v] {
                 continue;
             }
-            let [a, b] = views[v].targets;
+            let [a, b] = view.targets;
             match (ref_from[a], ref_from[b]) {
-                (Some(ra), None) => ref_from[b] = Some(ra * rel(v)),
-                (None, Some(rb)) => ref_from[a] = Some(rb * rel(v).inverse()),
+                (Some(ra), None) => ref_from[b] = Some(ra * relative(syms, view, labels[v])),
+                (None, Some(rb)) => {
+                    ref_from[a] = Some(rb * relative(syms, view, labels[v]).inverse())
+                }
                 _ => continue,
             }
             used[v] = true;
@@ -124,6 +126,17 @@ fn place(
             break;
         }
     }
+    (ref_from, used)
+}
+
+fn place(
+    syms: &[Vec<Symmetry>],
+    sizes: &[f64],
+    reference_target: usize,
+    views: &[View],
+    chosen: &[[usize; 2]],
+) -> Placement {
+    let (ref_from, used) = chain(syms, reference_target, views, chosen);
     let closing = (0..views.len())
         .map(|v| {
             if used[v] {
@@ -132,7 +145,7 @@ fn place(
             let [a, b] = views[v].targets;
             let (ra, rb) = (ref_from[a]?, ref_from[b]?);
             Some(discrepancy(
-                &rel(v),
+                &relative(syms, &views[v], chosen[v]),
                 &(ra.inverse() * rb),
                 sizes[a].max(sizes[b]),
             ))
@@ -192,11 +205,7 @@ pub fn resolve(
     dist.sort_by(f64::total_cmp);
     let scale = dist.get(dist.len() / 2).copied().unwrap_or(1.0);
     let order = |t: usize| syms[t].len();
-    let rel = |v: usize, g: [usize; 2]| {
-        let [a, b] = views[v].targets;
-        relabel(&views[v].poses[0], &syms[a][g[0]]).inverse()
-            * relabel(&views[v].poses[1], &syms[b][g[1]])
-    };
+    let rel = |v: usize, g: [usize; 2]| relative(&syms, &views[v], g);
     let mut margin_of = vec![f64::INFINITY; views.len()];
 
     // 1. Repeated views of a pair: agree with the pair's first view.
@@ -432,32 +441,8 @@ fn place_cameras(
     views: &[View],
     labels: &[[usize; 2]],
 ) -> Vec<Option<Vec3>> {
-    let n = syms.len();
-    let mut ref_from: Vec<Option<Pose>> = vec![None; n];
-    ref_from[reference_target] = Some(Pose::identity());
-    let mut used = vec![false; views.len()];
-    loop {
-        let mut grew = false;
-        for (v, view) in views.iter().enumerate() {
-            if used[v] {
-                continue;
-            }
-            let [a, b] = view.targets;
-            let r = relabel(&view.poses[0], &syms[a][labels[v][0]]).inverse()
-                * relabel(&view.poses[1], &syms[b][labels[v][1]]);
-            match (ref_from[a], ref_from[b]) {
-                (Some(ra), None) => ref_from[b] = Some(ra * r),
-                (None, Some(rb)) => ref_from[a] = Some(rb * r.inverse()),
-                _ => continue,
-            }
-            used[v] = true;
-            grew = true;
-        }
-        if !grew {
-            break;
-        }
-    }
-    (0..n)
+    let (ref_from, _) = chain(syms, reference_target, views, labels);
+    (0..syms.len())
         .map(|t| Some((ref_from[t]? * target_from_cam[t]?).trans))
         .collect()
 }
