@@ -25,7 +25,9 @@ async fn setup() -> (tempfile::TempDir, Store, Queue, String, String) {
 async fn two_workers_never_hold_the_same_job() {
     let (_d, _s, q, t, s) = setup().await;
     for _ in 0..20 {
-        q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+        q.enqueue(&t, &s, (None, None), "motion", "{}", 3)
+            .await
+            .unwrap();
     }
     let mut tasks = Vec::new();
     for w in 0..4 {
@@ -51,7 +53,10 @@ async fn two_workers_never_hold_the_same_job() {
 #[tokio::test]
 async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
     let (_d, _s, q, t, s) = setup().await;
-    let job = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    let job = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 3)
+        .await
+        .unwrap();
     let a = q.claim("a", 1).await.unwrap().unwrap();
     assert_eq!(a.id, job.id);
     tokio::time::sleep(std::time::Duration::from_millis(20)).await;
@@ -109,7 +114,10 @@ async fn an_expired_lease_is_reclaimed_and_the_old_owner_cannot_complete() {
 #[tokio::test]
 async fn transient_failures_back_off_then_fail_at_the_limit() {
     let (_d, _s, q, t, s) = setup().await;
-    let job = q.enqueue(&t, &s, None, "motion", "{}", 2).await.unwrap();
+    let job = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 2)
+        .await
+        .unwrap();
     let p = json!({"code": "storage_error", "detail": "disk full"});
     q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(
@@ -129,7 +137,10 @@ async fn transient_failures_back_off_then_fail_at_the_limit() {
     assert_eq!(j.status, JobStatus::Failed);
     assert!(j.error.unwrap().contains("disk full"));
     // Bad input: failed at once, whatever attempts remain.
-    let job2 = q.enqueue(&t, &s, None, "motion", "{}", 5).await.unwrap();
+    let job2 = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 5)
+        .await
+        .unwrap();
     q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(
         q.fail(&job2.id, "w", &p, false, 200).await.unwrap(),
@@ -140,12 +151,18 @@ async fn transient_failures_back_off_then_fail_at_the_limit() {
 #[tokio::test]
 async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
     let (_d, _s, q, t, s) = setup().await;
-    let queued = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    let queued = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 3)
+        .await
+        .unwrap();
     assert_eq!(
         q.cancel(&t, &queued.id).await.unwrap().unwrap().status,
         JobStatus::Cancelled
     );
-    let running = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    let running = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 3)
+        .await
+        .unwrap();
     q.claim("w", 60_000).await.unwrap().unwrap();
     assert_eq!(
         q.cancel(&t, &running.id).await.unwrap().unwrap().status,
@@ -170,7 +187,10 @@ async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
         JobStatus::Cancelled
     );
     // Another tenant cannot cancel.
-    let other = q.enqueue(&t, &s, None, "motion", "{}", 3).await.unwrap();
+    let other = q
+        .enqueue(&t, &s, (None, None), "motion", "{}", 3)
+        .await
+        .unwrap();
     assert!(q.cancel("someone-else", &other.id).await.unwrap().is_none());
     assert_eq!(
         q.get(&other.id).await.unwrap().unwrap().status,

@@ -2,7 +2,8 @@
 
 use anyhow::{anyhow, Context, Result};
 use rigcal_core::session::parse_session;
-use rigcal_engine::export::{render_for, ExportError, Format};
+use rigcal_core::vehicle::VehicleModel;
+use rigcal_engine::export::{render_in, ExportError, Format, Frame};
 use rigcal_engine::pipeline::{run as run_pipeline, CalibOptions, DirSource, LossKind, Silent};
 use std::path::PathBuf;
 
@@ -18,6 +19,15 @@ pub struct Args {
     /// The camera of `--format camera_info`.
     #[arg(long)]
     camera: Option<String>,
+    /// The frame of the export: `reference` (the reference camera's) or `vehicle` (the
+    /// vehicle model's, placed by its `vehicle_from_ref`; needs `--vehicle-model`).
+    #[arg(long, default_value = "reference", value_parser = ["reference", "vehicle"])]
+    frame: String,
+    /// A vehicle model document (as `PUT /v1/vehicle-models/{model}` takes): every
+    /// camera's deviation from the nominal rig is printed on stderr, and `--frame
+    /// vehicle` uses its `vehicle_from_ref`.
+    #[arg(long)]
+    vehicle_model: Option<PathBuf>,
     /// Robust loss of the outlier pass: huber | cauchy | squared
     #[arg(long, default_value = "huber")]
     loss: LossKind,
@@ -76,6 +86,23 @@ pub fn run(a: Args) -> Result<i32> {
             "replaying the job bundle with its options (loss {loss:?}, scale {loss_scale} px)"
         );
     }
+    let model = match &a.vehicle_model {
+        None => None,
+        Some(p) => {
+            let bytes = std::fs::read(p).with_context(|| format!("reading {}", p.display()))?;
+            Some(
+                VehicleModel::parse(&bytes)
+                    .map_err(|e| anyhow!("--vehicle-model {}: {e}", p.display()))?,
+            )
+        }
+    };
+    let frame = match (a.frame.as_str(), &model) {
+        ("vehicle", None) => return Err(anyhow!("--frame vehicle: needs --vehicle-model FILE with vehicle_from_ref")),
+        ("vehicle", Some(m)) => Frame::Vehicle(m.vehicle_from_ref().ok_or_else(|| {
+            anyhow!("--frame vehicle: the vehicle model defines no vehicle_from_ref (where the reference camera sits in the vehicle frame)")
+        })?),
+        _ => Frame::Reference,
+    };
     let bytes =
         std::fs::read(&manifest).with_context(|| format!("reading {}", manifest.display()))?;
     let session = parse_session(&bytes).map_err(|e| anyhow!("session: {e}"))?;
@@ -88,7 +115,27 @@ pub fn run(a: Args) -> Result<i32> {
         .unwrap_or_default();
     let doc = run_pipeline(&session, &DirSource(dir), &opts, &Silent)
         .map_err(|c| anyhow!("cancelled at {}", c.0))?;
-    match render_for(&doc, &session, a.format, a.camera.as_deref()) {
+    if let Some(m) = &model {
+        let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+        m.fits(&session.manifest.reference_camera, &ids)
+            .map_err(|e| anyhow!("session against --vehicle-model: {e}"))?;
+        let values: Vec<_> = doc.extrinsics.iter().map(|e| e.value.clone()).collect();
+        for d in m.deviations(&values) {
+            match (d.translation_norm_mm, d.rotation_angle_deg) {
+                (Some(t), Some(r)) => eprintln!(
+                    "{}: {t:.2} mm, {r:.3}° from nominal: {}",
+                    d.camera,
+                    if d.within_tolerance {
+                        "within tolerance".to_string()
+                    } else {
+                        d.exceeded.join("; ")
+                    }
+                ),
+                _ => eprintln!("{}: {}", d.camera, d.exceeded.join("; ")),
+            }
+        }
+    }
+    match render_in(&doc, &session, a.format, a.camera.as_deref(), frame) {
         Ok(text) => println!("{text}"),
         Err(ExportError::NothingToExport) => {
             println!("{}", serde_json::to_string_pretty(&doc)?);

@@ -8,5 +8,6 @@ pub mod linalg;
 pub mod result;
 pub mod session;
 pub mod target;
+pub mod vehicle;
 pub mod verdict;
 pub mod xml;

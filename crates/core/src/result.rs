@@ -36,7 +36,7 @@ pub struct ObservableDof {
     pub translation: u8,
 }
 
-#[derive(Clone, Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ExtrinsicValue {
     pub camera: String,
     /// 4×4 `ref_from_cam`, row-major: maps camera coordinates to reference-camera coordinates.

@@ -3,6 +3,7 @@
 
 pub mod api;
 pub mod dashboard;
+pub mod fleet;
 pub mod jobs;
 pub mod signals;
 pub mod store;

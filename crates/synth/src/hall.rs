@@ -675,6 +675,7 @@ impl Hall {
         let manifest = SessionManifest {
             version: 1,
             vehicle_id: Some(format!("synth-{}", self.preset)),
+            vehicle_model: None,
             method: Default::default(),
             reference_camera: reference.clone(),
             cameras: self

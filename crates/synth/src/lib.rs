@@ -339,10 +339,29 @@ pub fn camera_spec(id: &str, c: &Camera) -> CameraSpec {
 /// Build a preset's session (observations with `noise_px` Gaussian pixel noise) and truth.
 /// The hall presets give their fully visible tags' true corners plus that noise.
 pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManifest, Truth)> {
+    generate_mounted(preset, seed, noise_px, &BTreeMap::new())
+}
+
+/// [`generate`] with cameras mounted off their design pose: `mounting[id]` is applied in
+/// the camera's own frame (`vehicle_from_cam · δ`, a bracket turned or shifted), after
+/// the scene is laid out, so one seed gives the same drive and scene for every mounting —
+/// a fleet of one vehicle model. The truth is the mounted rig. Not for the hall and ring
+/// presets (their scenes are laid out for the design rig): `None` there when `mounting`
+/// is not empty.
+pub fn generate_mounted(
+    preset: &str,
+    seed: u64,
+    noise_px: f64,
+    mounting: &BTreeMap<String, Pose>,
+) -> Option<(SessionManifest, Truth)> {
     if !(noise_px.is_finite() && noise_px >= 0.0) {
         return None;
     }
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let special = preset == "wu-table2" || hall::PRESETS.contains(&preset);
+    if special && !mounting.is_empty() {
+        return None;
+    }
     if preset == "wu-table2" {
         return Some(ring::generate(&mut rng, noise_px));
     }
@@ -352,11 +371,16 @@ pub fn generate(preset: &str, seed: u64, noise_px: f64) -> Option<(SessionManife
             .detection_capture(noise_px, seed)?;
         return Some((c.manifest, c.truth));
     }
-    let sc = if preset == "lebraly-5.1" {
+    let mut sc = if preset == "lebraly-5.1" {
         lebraly(&mut rng)
     } else {
         car(preset, &mut rng)?
     };
+    for (id, _, vehicle_from_cam) in &mut sc.cameras {
+        if let Some(d) = mounting.get(id) {
+            *vehicle_from_cam = *vehicle_from_cam * *d;
+        }
+    }
     Some(render(&sc, &mut rng, noise_px))
 }
 
@@ -428,6 +452,7 @@ fn render(sc: &Scenario, rng: &mut ChaCha8Rng, noise_px: f64) -> (SessionManifes
     let manifest = SessionManifest {
         version: 1,
         vehicle_id: Some(format!("synth-{}", sc.preset)),
+        vehicle_model: None,
         method: Default::default(),
         reference_camera: reference.clone(),
         cameras,

@@ -633,6 +633,7 @@ pub fn generate_print(
     let manifest = SessionManifest {
         version: 1,
         vehicle_id: Some("synth-wu-table2".into()),
+        vehicle_model: None,
         method: rigcal_core::session::Method::Vanishing,
         reference_camera: cam_ids[0].clone(),
         cameras: cam_ids.iter().map(|id| camera_spec(id, rig)).collect(),

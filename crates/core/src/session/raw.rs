@@ -10,6 +10,10 @@ pub struct SessionManifest {
     pub version: u32,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub vehicle_id: Option<String>,
+    /// The vehicle model (`PUT /v1/vehicle-models/{model}`) whose nominal rig and
+    /// tolerances the result is judged against.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub vehicle_model: Option<String>,
     #[serde(default)]
     pub method: Method,
     pub reference_camera: String,

@@ -378,6 +378,9 @@ fn validate(m: SessionManifest) -> Result<Session, InputError> {
     if let Some(v) = &m.vehicle_id {
         super::check_identifier("vehicle_id", v)?;
     }
+    if let Some(v) = &m.vehicle_model {
+        super::check_identifier("vehicle_model", v)?;
+    }
     let mut cameras = Vec::new();
     let mut seen = HashSet::new();
     for (i, c) in m.cameras.iter().enumerate() {

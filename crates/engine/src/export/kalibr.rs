@@ -15,6 +15,11 @@ pub(super) fn render(rig: &Rig) -> Result<String, ExportError> {
          # rigcal also writes T_ref_cam (ref_from_cam: camera n to the reference camera).\n\
          # cam_overlaps: the cameras that saw a point in the same frame as this one.\n",
     );
+    if rig.vehicle_from_ref.is_some() {
+        out.push_str(
+            "# T_vehicle_cam (vehicle_from_cam): camera n in the vehicle model's vehicle frame.\n",
+        );
+    }
     for (i, c) in session.cameras.iter().enumerate() {
         let k = &c.camera;
         let (dm, coeffs) = match k.model {
@@ -41,6 +46,10 @@ pub(super) fn render(rig: &Rig) -> Result<String, ExportError> {
         ));
         out.push_str("  T_ref_cam:\n");
         out.push_str(&yaml_matrix(&rig.ref_from_cam[i], "  "));
+        if let Some(v) = &rig.vehicle_from_ref {
+            out.push_str("  T_vehicle_cam:\n");
+            out.push_str(&yaml_matrix(&(*v * rig.ref_from_cam[i]), "  "));
+        }
         if i > 0 {
             let cn_from_cnm1 = rig.ref_from_cam[i].inverse() * rig.ref_from_cam[i - 1];
             out.push_str("  T_cn_cnm1:\n");

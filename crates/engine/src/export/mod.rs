@@ -105,6 +105,16 @@ pub fn render(
     render_for(doc, session, format, None)
 }
 
+/// The frame the rig is exported in.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Frame {
+    /// The reference camera's (the result's own).
+    Reference,
+    /// The vehicle frame of a vehicle model: `vehicle_from_ref` places the reference
+    /// camera in it.
+    Vehicle(Pose),
+}
+
 /// Render `doc` in `format`; `camera` names the camera of the per-camera formats
 /// (`camera_info`) and must be absent for the others.
 pub fn render_for(
@@ -113,6 +123,24 @@ pub fn render_for(
     format: Format,
     camera: Option<&str>,
 ) -> Result<String, ExportError> {
+    render_in(doc, session, format, camera, Frame::Reference)
+}
+
+/// [`render_for`] in `frame`. A format whose rig frame is fixed (COLMAP's is its
+/// reference sensor; the JSON document is the result itself) refuses the vehicle frame.
+pub fn render_in(
+    doc: &ResultDocument,
+    session: &Session,
+    format: Format,
+    camera: Option<&str>,
+    frame: Frame,
+) -> Result<String, ExportError> {
+    if let (Frame::Vehicle(_), Format::Json | Format::Colmap) = (frame, format) {
+        return Err(ExportError::Unrepresentable(match format {
+            Format::Json => "the JSON result is the calibration itself, always in the reference camera's frame; the vehicle frame is for the kalibr, opencv, urdf and ros2 exports".into(),
+            _ => "COLMAP's rig frame is its reference sensor (ref_sensor has no cam_from_rig), so a COLMAP rig has no vehicle frame; export it in the reference frame".into(),
+        }));
+    }
     let camera_info_of = match (format, camera) {
         (Format::CameraInfo, Some(c)) => Some(c),
         (Format::CameraInfo, None) => {
@@ -139,7 +167,10 @@ pub fn render_for(
     if doc.extrinsics.is_empty() || doc.status == rigcal_core::result::Status::Failed {
         return Err(ExportError::NothingToExport);
     }
-    let rig = Rig::of(doc, session)?;
+    let mut rig = Rig::of(doc, session)?;
+    if let Frame::Vehicle(p) = frame {
+        rig.vehicle_from_ref = Some(p);
+    }
     match format {
         Format::Kalibr => kalibr::render(&rig),
         Format::Opencv => opencv::render(&rig),
@@ -155,11 +186,13 @@ pub fn render_for(
     }
 }
 
-/// What every exporter needs: the session's cameras in order with their `ref_from_cam`.
+/// What every exporter needs: the session's cameras in order with their `ref_from_cam`,
+/// and the vehicle frame when the export is in it.
 struct Rig<'a> {
     session: &'a Session,
     reference: &'a str,
     ref_from_cam: Vec<Pose>,
+    vehicle_from_ref: Option<Pose>,
 }
 
 impl<'a> Rig<'a> {
@@ -179,9 +212,13 @@ impl<'a> Rig<'a> {
             session,
             reference: &doc.reference_camera,
             ref_from_cam,
+            vehicle_from_ref: None,
         })
     }
 }
+
+/// The vehicle frame's name in the ROS formats (REP 105's `base_link`).
+const VEHICLE_FRAME: &str = "base_link";
 
 /// A float that YAML 1.1 (PyYAML, which Kalibr and ROS use) and YAML 1.2 both read as a
 /// float, at full precision: digits, a point, and a signed exponent if any. Rust's

@@ -34,10 +34,21 @@ fn floats(xs: &[f64]) -> Vec<String> {
 }
 
 pub(super) fn render(rig: &Rig) -> Result<String, ExportError> {
-    let mut out = String::from(
+    let (base, to) = if rig.vehicle_from_ref.is_some() {
+        (
+            "vehicle-frame points (the vehicle model's vehicle frame)",
+            "cam_from_vehicle = (vehicle_from_ref · ref_from_cam)⁻¹",
+        )
+    } else {
+        (
+            "reference-camera points",
+            "cam_from_ref, the inverse of rigcal's ref_from_cam",
+        )
+    };
+    let mut out = format!(
         "%YAML:1.0\n---\n\
-         # OpenCV stereo convention: <id>_R, <id>_T map reference-camera points into this camera,\n\
-         # x_cam = R x_ref + T (cam_from_ref); rigcal's ref_from_cam is the inverse. For a pair\n\
+         # OpenCV stereo convention: <id>_R, <id>_T map {base} into this camera,\n\
+         # x_cam = R x + T: {to}. For a pair\n\
          # (a, b): R = R_b R_aᵀ, T = T_b − R T_a. <id>_K is the camera matrix, <id>_D the\n\
          # distortion (k1, k2, p1, p2, k3 for model pinhole; k1..k4 of cv2.fisheye for model\n\
          # fisheye), <id>_size [width, height] in pixels.\n",
@@ -67,7 +78,10 @@ pub(super) fn render(rig: &Rig) -> Result<String, ExportError> {
             "i",
             &[k.width.to_string(), k.height.to_string()],
         ));
-        let p = ref_from_cam.inverse();
+        let p = match &rig.vehicle_from_ref {
+            Some(v) => (*v * *ref_from_cam).inverse(),
+            None => ref_from_cam.inverse(),
+        };
         let r = p.rot;
         let rows: Vec<f64> = (0..3)
             .flat_map(|i| (0..3).map(move |j| r[(i, j)]))

@@ -5,26 +5,43 @@
 
 use super::urdf::xml_attr;
 use super::{yaml_floats, yaml_str, ExportError, Rig};
-use rigcal_core::geometry::{so3, CameraModel};
+use rigcal_core::geometry::{so3, CameraModel, Pose};
 
 pub(super) fn launch(rig: &Rig) -> String {
-    let reference = xml_attr(&format!("{}_optical_frame", rig.reference));
     let mut out = String::from(
         "<?xml version=\"1.0\"?>\n<!-- rigcal: static transforms parent = the reference camera's optical frame, child = each\n     camera's optical frame (z forward, x right, y down); translation in metres, rotation a unit\n     quaternion: the child's pose in the parent (ref_from_cam). -->\n<launch>\n",
     );
+    let mut transforms: Vec<(String, String, String, &Pose)> = Vec::new();
+    if let Some(v) = &rig.vehicle_from_ref {
+        out.push_str("  <!-- base_link: the vehicle model's vehicle frame, parent of the reference camera (vehicle_from_ref). -->\n");
+        transforms.push((
+            "rigcal_tf_base_link".into(),
+            super::VEHICLE_FRAME.into(),
+            format!("{}_optical_frame", rig.reference),
+            v,
+        ));
+    }
     for (c, p) in rig.session.cameras.iter().zip(&rig.ref_from_cam) {
-        if c.id == rig.reference {
-            continue;
+        if c.id != rig.reference {
+            transforms.push((
+                format!("rigcal_tf_{}", c.id),
+                format!("{}_optical_frame", rig.reference),
+                format!("{}_optical_frame", c.id),
+                p,
+            ));
         }
+    }
+    for (name, parent, child, p) in transforms {
         let [w, x, y, z] = so3::to_quaternion(&p.rot);
-        let child = xml_attr(&format!("{}_optical_frame", c.id));
+        let reference = xml_attr(&parent);
+        let child = xml_attr(&child);
         let args = format!(
             "--x {:?} --y {:?} --z {:?} --qx {x:?} --qy {y:?} --qz {z:?} --qw {w:?} --frame-id {reference} --child-frame-id {child}",
             p.trans.x, p.trans.y, p.trans.z
         );
         out.push_str(&format!(
             "  <node pkg=\"tf2_ros\" exec=\"static_transform_publisher\" name=\"{}\" args=\"{args}\"/>\n",
-            xml_attr(&format!("rigcal_tf_{}", c.id))
+            xml_attr(&name)
         ));
     }
     out.push_str("</launch>\n");

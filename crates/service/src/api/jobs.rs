@@ -18,7 +18,8 @@ use futures::Stream;
 use rigcal_core::result::ResultDocument;
 use rigcal_core::session::undetected_images;
 use rigcal_core::session::{parse_session, InputError};
-use rigcal_engine::export::{render_for, ExportError, Format};
+use rigcal_core::vehicle::VehicleModel;
+use rigcal_engine::export::{render_in, ExportError, Format, Frame};
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Value};
 use std::convert::Infallible;
@@ -38,6 +39,7 @@ pub struct JobView {
     id: String,
     session_id: String,
     vehicle_id: Option<String>,
+    vehicle_model: Option<String>,
     method: String,
     status: JobStatus,
     stage: Option<String>,
@@ -61,7 +63,7 @@ pub struct JobView {
 }
 
 impl JobView {
-    fn of(j: &JobRow, tenant: &Tenant) -> Self {
+    fn of(j: &JobRow, tenant: &Tenant, models: &Models) -> Self {
         let now = now_ms();
         let queued_until = j.started_at.unwrap_or(if j.is_terminal() {
             j.finished_at.unwrap_or(now)
@@ -72,6 +74,7 @@ impl JobView {
             id: j.id.clone(),
             session_id: j.session_id.clone(),
             vehicle_id: j.vehicle_id.clone(),
+            vehicle_model: j.vehicle_model.clone(),
             method: j.method.clone(),
             status: j.status,
             stage: j.stage.clone(),
@@ -93,7 +96,11 @@ impl JobView {
             running_seconds: j
                 .started_at
                 .map(|s| (j.finished_at.unwrap_or(now) - s).max(0) as f64 / 1000.0),
-            acceptance: judge(j, tenant),
+            acceptance: judge(
+                j,
+                tenant,
+                j.vehicle_model.as_ref().and_then(|m| models.get(m)),
+            ),
             links: JobLinks {
                 self_: format!("/v1/jobs/{}", j.id),
                 events: format!("/v1/jobs/{}/events", j.id),
@@ -141,6 +148,33 @@ pub fn json_body<T: serde::de::DeserializeOwned>(body: &[u8]) -> Result<T, ApiEr
         };
         ApiError::invalid(InputError::new(path, inner))
     })
+}
+
+/// The vehicle models jobs are judged against, by name.
+pub type Models = std::collections::HashMap<String, VehicleModel>;
+
+/// The models the `jobs` name (each read once).
+pub async fn models_of<'a>(
+    state: &AppState,
+    tenant_id: &str,
+    jobs: impl IntoIterator<Item = &'a JobRow>,
+) -> Result<Models, ApiError> {
+    let mut out = Models::new();
+    for name in jobs.into_iter().filter_map(|j| j.vehicle_model.as_ref()) {
+        if out.contains_key(name) {
+            continue;
+        }
+        if let Some(row) = state.store.vehicle_model(tenant_id, name).await? {
+            out.insert(name.clone(), row.document);
+        }
+    }
+    Ok(out)
+}
+
+/// The job as the API shows it, judged against its vehicle model as stored now.
+pub async fn view(state: &AppState, tenant: &Tenant, job: &JobRow) -> Result<JobView, ApiError> {
+    let models = models_of(state, &tenant.id, [job]).await?;
+    Ok(JobView::of(job, tenant, &models))
 }
 
 async fn job_or_404(state: &AppState, tenant: &str, id: &str) -> Result<JobRow, ApiError> {
@@ -207,7 +241,10 @@ pub async fn create(
         .enqueue(
             &tenant.id,
             &session.id,
-            session.vehicle_id.as_deref(),
+            (
+                session.vehicle_id.as_deref(),
+                parsed.manifest.vehicle_model.as_deref(),
+            ),
             &session.method,
             &serde_json::to_string(&options).map_err(ApiError::internal)?,
             state.config.max_attempts,
@@ -216,7 +253,7 @@ pub async fn create(
     Ok((
         StatusCode::ACCEPTED,
         [(header::LOCATION, format!("/v1/jobs/{}", job.id))],
-        Json(JobView::of(&job, &tenant)),
+        Json(view(&state, &tenant, &job).await?),
     )
         .into_response())
 }
@@ -299,8 +336,9 @@ pub async fn list(
 ) -> Result<Json<Value>, ApiError> {
     let f = parse_filter(raw.as_deref())?;
     let (rows, total) = state.queue.list(&tenant.id, &f).await?;
+    let models = models_of(&state, &tenant.id, &rows).await?;
     Ok(Json(json!({
-        "jobs": rows.iter().map(|j| JobView::of(j, &tenant)).collect::<Vec<_>>(),
+        "jobs": rows.iter().map(|j| JobView::of(j, &tenant, &models)).collect::<Vec<_>>(),
         "total": total,
         "limit": f.limit,
         "offset": f.offset,
@@ -312,10 +350,8 @@ pub async fn show(
     AuthTenant(tenant): AuthTenant,
     Path(id): Path<String>,
 ) -> Result<Json<JobView>, ApiError> {
-    Ok(Json(JobView::of(
-        &job_or_404(&state, &tenant.id, &id).await?,
-        &tenant,
-    )))
+    let job = job_or_404(&state, &tenant.id, &id).await?;
+    Ok(Json(view(&state, &tenant, &job).await?))
 }
 
 /// `DELETE /v1/jobs/{id}`: cancel (at once when queued; between stages when running).
@@ -337,7 +373,11 @@ pub async fn cancel(
         .cancel(&tenant.id, &id)
         .await?
         .ok_or_else(|| ApiError::not_found("job"))?;
-    Ok((StatusCode::ACCEPTED, Json(JobView::of(&job, &tenant))).into_response())
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(view(&state, &tenant, &job).await?),
+    )
+        .into_response())
 }
 
 /// The event a stream resumes after: `Last-Event-ID` as a non-negative integer no
@@ -496,6 +536,7 @@ pub(super) async fn document(
 struct ResultQuery {
     format: Option<String>,
     camera: Option<String>,
+    frame: Option<String>,
 }
 
 /// `GET /v1/jobs/{id}/result[?format=json|kalibr|opencv|urdf|colmap|ros2|camera_info[&camera=ID]]`.
@@ -509,7 +550,7 @@ pub async fn result(
         ApiError::new(
             StatusCode::BAD_REQUEST,
             "invalid-query",
-            format!("query: {e}; known parameters: format, camera"),
+            format!("query: {e}; known parameters: format, camera, frame"),
         )
         .field("query")
     })?;
@@ -522,10 +563,45 @@ pub async fn result(
             ))
         })?,
     };
+    let vehicle_frame = match q.frame.as_deref() {
+        None | Some("reference") => false,
+        Some("vehicle") => true,
+        Some(other) => {
+            return Err(ApiError::invalid(InputError::new(
+                "frame",
+                format!(
+                    "reference or vehicle, got {}",
+                    rigcal_core::session::quoted_prefix(other)
+                ),
+            )))
+        }
+    };
     let (job, text) = document(&state, &tenant.id, &id).await?;
-    if format == Format::Json && q.camera.is_none() {
-        return Ok(([(header::CONTENT_TYPE, "application/json")], text).into_response());
+    let models = models_of(&state, &tenant.id, [&job]).await?;
+    let model = job.vehicle_model.as_ref().and_then(|m| models.get(m));
+    if format == Format::Json && q.camera.is_none() && !vehicle_frame {
+        let Some(nominal) = judge(&job, &tenant, model).nominal else {
+            return Ok(([(header::CONTENT_TYPE, "application/json")], text).into_response());
+        };
+        // The stored document with the verdict against the vehicle model as it is now.
+        let mut doc: Value = serde_json::from_str(&text).map_err(ApiError::internal)?;
+        doc["nominal"] = serde_json::to_value(nominal).map_err(ApiError::internal)?;
+        return Ok(Json(doc).into_response());
     }
+    let frame = if vehicle_frame {
+        let v = model.and_then(VehicleModel::vehicle_from_ref).ok_or_else(|| {
+            ApiError::invalid(InputError::new(
+                "frame",
+                match &job.vehicle_model {
+                    None => "reference: the job's session names no vehicle_model, so there is no vehicle frame".to_string(),
+                    Some(m) => format!("reference: vehicle model {m} defines no vehicle_from_ref"),
+                },
+            ))
+        })?;
+        Frame::Vehicle(v)
+    } else {
+        Frame::Reference
+    };
     let doc: ResultDocument = serde_json::from_str(&text).map_err(ApiError::internal)?;
     let session = state
         .store
@@ -535,7 +611,7 @@ pub async fn result(
     let session = parse_session(session.manifest.as_bytes()).map_err(ApiError::internal)?;
     let (ct, ext) = format.media();
     let name = format.as_str();
-    match render_for(&doc, &session, format, q.camera.as_deref()) {
+    match render_in(&doc, &session, format, q.camera.as_deref(), frame) {
         Ok(out) => Ok((
             [
                 (header::CONTENT_TYPE, ct.to_string()),

@@ -13,6 +13,7 @@ mod listen;
 mod ops;
 mod sessions;
 mod tenant;
+mod vehicle_models;
 mod vehicles;
 
 use crate::jobs::queue::Queue;
@@ -174,6 +175,14 @@ pub fn build_app(state: AppState) -> Router {
         .route("/jobs/{id}/result", get(jobs::result))
         .route("/jobs/{id}/bundle", get(bundle::bundle))
         .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
+        .route("/vehicle-models", get(vehicle_models::list))
+        .route(
+            "/vehicle-models/{model}",
+            put(vehicle_models::put)
+                .layer(body_limit(cfg.max_manifest_bytes))
+                .get(vehicle_models::show),
+        )
+        .route("/vehicle-models/{model}/fleet", get(vehicle_models::fleet))
         .route(
             "/vehicles/{vehicle_id}/calibrations",
             get(vehicles::calibrations),

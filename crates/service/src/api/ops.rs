@@ -213,6 +213,7 @@ mod tests {
             let full = if path.starts_with("/sessions")
                 || path.starts_with("/jobs")
                 || path.starts_with("/vehicles")
+                || path.starts_with("/vehicle-models")
                 || path == "/events"
                 || path.starts_with("/tenant")
             {

@@ -325,6 +325,23 @@ pub async fn create(
         )
         .field("Content-Type"));
     };
+    if let Some(name) = &session.manifest.vehicle_model {
+        let model = state
+            .store
+            .vehicle_model(&tenant.id, name)
+            .await?
+            .ok_or_else(|| {
+                ApiError::invalid(InputError::new(
+                    "vehicle_model",
+                    format!("a vehicle model of this tenant (PUT /v1/vehicle-models/{name} first), got {name}"),
+                ))
+            })?;
+        let ids: Vec<&str> = session.cameras.iter().map(|c| c.id.as_str()).collect();
+        model
+            .document
+            .fits(&session.manifest.reference_camera, &ids)
+            .map_err(ApiError::invalid)?;
+    }
     let text = String::from_utf8(manifest_bytes).map_err(|_| {
         ApiError::new(
             StatusCode::BAD_REQUEST,

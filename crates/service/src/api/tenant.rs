@@ -11,67 +11,30 @@ use crate::store::Tenant;
 use axum::body::Bytes;
 use axum::extract::State;
 use axum::Json;
-use rigcal_core::session::InputError;
-use serde::{Deserialize, Serialize};
+use rigcal_core::vehicle::AcceptanceThresholds;
 use serde_json::{json, Value};
 
-/// Acceptance thresholds: a finished job passes when it succeeded and its residual RMS
-/// and worst 1-σ are within them.
-#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Thresholds {
-    pub max_rms_px: f64,
-    pub max_sigma_translation_m: f64,
-    pub max_sigma_rotation_deg: f64,
-}
+/// The tenant's acceptance thresholds (a vehicle model may carry its own).
+pub type Thresholds = AcceptanceThresholds;
 
-impl Thresholds {
-    fn of(t: &Tenant) -> Self {
-        Thresholds {
-            max_rms_px: t.max_rms_px,
-            max_sigma_translation_m: t.max_sigma_translation_m,
-            max_sigma_rotation_deg: t.max_sigma_rotation_deg,
-        }
-    }
-
-    /// Each a positive finite number within what a calibration can mean.
-    fn check(&self) -> Result<(), InputError> {
-        for (field, v, max, unit) in [
-            ("max_rms_px", self.max_rms_px, 100.0, "pixels"),
-            (
-                "max_sigma_translation_m",
-                self.max_sigma_translation_m,
-                10.0,
-                "metres",
-            ),
-            (
-                "max_sigma_rotation_deg",
-                self.max_sigma_rotation_deg,
-                180.0,
-                "degrees",
-            ),
-        ] {
-            if !(v.is_finite() && v > 0.0 && v <= max) {
-                return Err(InputError::new(
-                    field,
-                    format!("a positive number of {unit} up to {max}, got {v}"),
-                ));
-            }
-        }
-        Ok(())
+fn thresholds_of(t: &Tenant) -> Thresholds {
+    Thresholds {
+        max_rms_px: t.max_rms_px,
+        max_sigma_translation_m: t.max_sigma_translation_m,
+        max_sigma_rotation_deg: t.max_sigma_rotation_deg,
     }
 }
 
 pub async fn show(AuthTenant(tenant): AuthTenant) -> Json<Value> {
     Json(json!({
         "name": tenant.name,
-        "acceptance_thresholds": Thresholds::of(&tenant),
+        "acceptance_thresholds": thresholds_of(&tenant),
     }))
 }
 
 /// `GET /v1/tenant/thresholds`.
 pub async fn thresholds(AuthTenant(tenant): AuthTenant) -> Json<Thresholds> {
-    Json(Thresholds::of(&tenant))
+    Json(thresholds_of(&tenant))
 }
 
 /// `PUT /v1/tenant/thresholds`: all three, replaced together.
@@ -81,7 +44,7 @@ pub async fn set_thresholds(
     body: Bytes,
 ) -> Result<Json<Thresholds>, ApiError> {
     let t: Thresholds = json_body(&body)?;
-    t.check().map_err(ApiError::invalid)?;
+    t.check("").map_err(ApiError::invalid)?;
     state
         .store
         .set_thresholds(

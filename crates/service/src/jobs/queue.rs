@@ -102,6 +102,8 @@ pub struct JobRow {
     pub tenant_id: String,
     pub session_id: String,
     pub vehicle_id: Option<String>,
+    /// The session's vehicle model, judged against when the job is read.
+    pub vehicle_model: Option<String>,
     pub method: String,
     pub options: String,
     pub status: JobStatus,
@@ -114,6 +116,8 @@ pub struct JobRow {
     pub residual_rms_px: Option<f64>,
     pub worst_sigma_translation_m: Option<f64>,
     pub worst_sigma_rotation_deg: Option<f64>,
+    /// JSON array of the result's extrinsic values (finished jobs with a result).
+    pub extrinsics: Option<String>,
     pub created_at: i64,
     pub started_at: Option<i64>,
     pub finished_at: Option<i64>,
@@ -135,6 +139,7 @@ fn job_from(r: &Rec) -> sqlx::Result<JobRow> {
         tenant_id: r.get("tenant_id")?,
         session_id: r.get("session_id")?,
         vehicle_id: r.get("vehicle_id")?,
+        vehicle_model: r.get("vehicle_model")?,
         method: r.get("method")?,
         options: r.get("options")?,
         status: JobStatus::parse(&status).ok_or_else(|| sqlx::Error::ColumnDecode {
@@ -150,6 +155,7 @@ fn job_from(r: &Rec) -> sqlx::Result<JobRow> {
         residual_rms_px: r.get("residual_rms_px")?,
         worst_sigma_translation_m: r.get("worst_sigma_translation_m")?,
         worst_sigma_rotation_deg: r.get("worst_sigma_rotation_deg")?,
+        extrinsics: r.get("extrinsics")?,
         created_at: r.get("created_at")?,
         started_at: r.get("started_at")?,
         finished_at: r.get("finished_at")?,
@@ -264,18 +270,20 @@ impl Queue {
         &self,
         tenant_id: &str,
         session_id: &str,
-        vehicle_id: Option<&str>,
+        vehicle: (Option<&str>, Option<&str>),
         method: &str,
         options: &str,
         max_attempts: i64,
     ) -> sqlx::Result<JobRow> {
+        let (vehicle_id, vehicle_model) = vehicle;
         let id = uuid::Uuid::new_v4().to_string();
         let mut tx = self.db.begin().await?;
-        let row = tx.fetch_one(sql("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, method, options, status, max_attempts, run_after, created_at) VALUES ($1, $2, $3, $4, $5, $6, 'queued', $7, NOW_MS, $8) RETURNING *")
+        let row = tx.fetch_one(sql("INSERT INTO jobs (id, tenant_id, session_id, vehicle_id, vehicle_model, method, options, status, max_attempts, run_after, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, 'queued', $8, NOW_MS, $9) RETURNING *")
             .bind(&id)
             .bind(tenant_id)
             .bind(session_id)
             .bind(vehicle_id)
+            .bind(vehicle_model)
             .bind(method)
             .bind(options)
             .bind(max_attempts)
@@ -421,7 +429,7 @@ impl Queue {
     ) -> sqlx::Result<bool> {
         let now = now_ms();
         let mut tx = self.db.begin().await?;
-        let n = tx.execute(sql("UPDATE jobs SET status = $1, progress = 1, stage = NULL, lease_owner = NULL, lease_expires_at = NULL, finished_at = $2, residual_rms_px = $3, worst_sigma_translation_m = $4, worst_sigma_rotation_deg = $5, error = $6 WHERE id = $7 AND lease_owner = $8 AND status = 'running'")
+        let n = tx.execute(sql("UPDATE jobs SET status = $1, progress = 1, stage = NULL, lease_owner = NULL, lease_expires_at = NULL, finished_at = $2, residual_rms_px = $3, worst_sigma_translation_m = $4, worst_sigma_rotation_deg = $5, error = $6, extrinsics = $9 WHERE id = $7 AND lease_owner = $8 AND status = 'running'")
             .bind(status)
             .bind(now)
             .bind(summary.residual_rms_px)
@@ -429,7 +437,8 @@ impl Queue {
             .bind(summary.worst_sigma_rotation_deg)
             .bind(error)
             .bind(id)
-            .bind(worker))
+            .bind(worker)
+            .bind(summary.extrinsics_json()))
             .await?;
         if n != 1 {
             return Ok(false);

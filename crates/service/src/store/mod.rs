@@ -9,6 +9,7 @@
 pub mod blob;
 pub mod db;
 pub mod idempotency;
+pub mod vehicle_models;
 
 pub use blob::BlobStore;
 use db::{sql, Db, Rec};
