@@ -87,6 +87,65 @@ async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
     failed
 }
 
+/// Vehicle model `rig-e2e` (the lebraly-5.1 design rig) and eight calibrated vehicles of
+/// it: seven mounted within 2 mm / 0.1° of design, one with cam2 turned 2°. Returns the
+/// knocked vehicle and its job.
+async fn fill_fleet(c: &reqwest::Client, s: &Server) -> (String, String) {
+    use rigcal_core::geometry::{so3, Pose};
+    let (_, truth) = rigcal_synth::generate("lebraly-5.1", 1, 0.0).unwrap();
+    let p = truth.ref_from_cam["cam2"];
+    let model = json!({
+        "reference_camera": "cam1",
+        "cameras": [
+            {"id": "cam1", "translation": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
+            {"id": "cam2", "translation": [p.trans.x, p.trans.y, p.trans.z],
+             "quaternion_wxyz": so3::to_quaternion(&p.rot),
+             "tolerance": {"translation_mm": 10.0, "rotation_deg": 0.5}}
+        ]
+    });
+    let r = c
+        .put(s.url("/v1/vehicle-models/rig-e2e"))
+        .json(&model)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    let mut jobs = Vec::new();
+    for i in 0..8u64 {
+        let x = i as f64;
+        let delta = if i == 5 {
+            Pose::from_rotvec(
+                nalgebra::Vector3::new(0.0, 2f64.to_radians(), 0.0),
+                nalgebra::Vector3::zeros(),
+            )
+        } else {
+            Pose::from_rotvec(
+                nalgebra::Vector3::new(x.cos(), (1.7 * x).sin(), (2.9 * x).cos())
+                    * 0.1f64.to_radians(),
+                nalgebra::Vector3::new(x.sin(), (1.3 * x).cos(), (2.1 * x).sin()) * 2e-3,
+            )
+        };
+        let mounting = [("cam2".to_string(), delta)].into_iter().collect();
+        let (m, _) =
+            rigcal_synth::generate_mounted("lebraly-5.1", 40 + i, 0.03, &mounting).unwrap();
+        let mut v = serde_json::to_value(&m).unwrap();
+        v["vehicle_id"] = json!(format!("LINE-{i:02}"));
+        v["vehicle_model"] = json!("rig-e2e");
+        let session = create_session(c, s, &v).await;
+        jobs.push(
+            submit(c, s, session["id"].as_str().unwrap()).await["id"]
+                .as_str()
+                .unwrap()
+                .to_string(),
+        );
+    }
+    for id in &jobs {
+        let j = wait_job(c, s, id, Duration::from_secs(120)).await;
+        assert_eq!(j["status"], "succeeded", "{j}");
+    }
+    ("LINE-05".into(), jobs[5].clone())
+}
+
 async fn post_session(c: &reqwest::Client, s: &Server, ct: &str, body: Vec<u8>) -> Value {
     let r = c
         .post(s.url("/v1/sessions"))
@@ -152,6 +211,12 @@ async fn dashboard_end_to_end_in_headless_chromium() {
     let big_key = api_key(big_dir.path(), "fleet");
     let big = Server::start(big_dir.path(), &["--workers", "0"]);
 
+    // A vehicle model's fleet: eight vehicles, one with its cam2 bracket turned 2°.
+    let fleet_dir = tempfile::tempdir().unwrap();
+    let fleet_key = api_key(fleet_dir.path(), "line");
+    let fleet = Server::start(fleet_dir.path(), &["--workers", "2"]);
+    let (knocked, knocked_job) = fill_fleet(&client(&fleet_key), &fleet).await;
+
     let config = json!({
         "chromium": chromium,
         "base": s.base,
@@ -162,6 +227,7 @@ async fn dashboard_end_to_end_in_headless_chromium() {
         "planar_job": planar_job["id"],
         "failed_job": failed_job["id"],
         "big": {"base": big.base, "key": big_key, "jobs": 10_000, "failed": failed},
+        "fleet": {"base": fleet.base, "key": fleet_key, "model": "rig-e2e", "knocked": knocked, "knocked_job": knocked_job, "vehicles": 8},
         "artifacts": artifacts,
     });
     let mut node = KillOnDrop(

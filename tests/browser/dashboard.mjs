@@ -224,6 +224,35 @@ try {
   await accessible(page, "vehicle page");
   assert.equal(await page.evaluate(() => window.__noReload), "still-here", "no reload anywhere");
 
+  // ---- 7b. A vehicle model's fleet: the outlier found, every vehicle drawn. ----
+  const fctx = await browser.newContext({ bypassCSP: true, viewport: { width: 1280, height: 900 } });
+  await fctx.addInitScript((k) => sessionStorage.setItem("rigcal.api_key", k), cfg.fleet.key);
+  const fp = await fctx.newPage();
+  watch(fp);
+  await fp.goto(cfg.fleet.base + "/#/jobs");
+  await fp.getByRole("link", { name: "Fleet" }).click();
+  await fp.getByRole("link", { name: cfg.fleet.model }).click();
+  await fp.getByRole("heading", { name: `Fleet of ${cfg.fleet.model}` }).waitFor();
+  await fp.locator("figure[data-camera] svg").first().waitFor();
+  const fleetApi = await apiJson(cfg.fleet.base, cfg.fleet.key, `/v1/vehicle-models/${cfg.fleet.model}/fleet`);
+  assert.equal(fleetApi.vehicles, cfg.fleet.vehicles);
+  const flagged = await fp.locator("#outliers tbody tr").evaluateAll((rows) => rows.map((r) => r.dataset.vehicle));
+  assert.deepEqual(flagged, [cfg.fleet.knocked], "the knocked vehicle and no other is an outlier");
+  // One dot per vehicle on each of the six axes; the outlier's dots marked.
+  const dots = await fp.locator("figure[data-camera] svg circle:not(:has(title))").count();
+  assert.equal(dots, 6 * cfg.fleet.vehicles, "six strips of one dot per vehicle");
+  assert.ok(await fp.locator("figure[data-camera] svg circle.outlier").count() >= 1, "the outlier's dots are marked");
+  await shot(fp, "07b-fleet");
+  await accessible(fp, "fleet page");
+  // Its job fails the line against the nominal rig, and says which camera.
+  await fp.locator(`#outliers a[href="#/jobs/${cfg.fleet.knocked_job}"]`).click();
+  await fp.locator("section.nominal tr[data-camera=cam2][data-within=false]").waitFor();
+  assert.match(await fp.locator("section.nominal").textContent(), /rotation [12]\.\d{3} deg from nominal exceeds 0\.5/);
+  assert.equal(await fp.locator("[data-acceptance]").first().getAttribute("data-acceptance"), "fail");
+  await shot(fp, "07c-nominal");
+  await accessible(fp, "job page against the nominal rig");
+  await fctx.close();
+
   // ---- 8. A tablet: no sideways scrolling of the page itself. ----
   const tablet = await browser.newContext({ viewport: { width: 768, height: 1024 } });
   // A key given earlier in this tab's session.

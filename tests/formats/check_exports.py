@@ -254,12 +254,104 @@ def check_session(binary, where, session_path, refused=()):
     print(f"ok {where}: {len(cams)} cameras")
 
 
+def tf_tree(edges, root):
+    """Every frame's pose in `root`, composed along parent -> child edges {child: (parent, m)}."""
+    out = {root: np.eye(4)}
+    while len(out) <= len(edges):
+        grew = False
+        for child, (parent, m) in edges.items():
+            if child not in out and parent in out:
+                out[child] = out[parent] @ m
+                grew = True
+        if not grew:
+            fail("tf tree", f"frames not connected to {root}: {sorted(set(edges) - set(out))}")
+    return out
+
+
+def check_vehicle_frame(binary, where, work, session_path, result):
+    """Exports in a vehicle model's frame (--frame vehicle): every camera's pose in the
+    vehicle frame read back from each format equals vehicle_from_ref @ ref_from_cam."""
+    session = json.loads(Path(session_path).read_text())
+    cams = [c["id"] for c in session["cameras"]]
+    ref = result["reference_camera"]
+    v = np.eye(4)
+    v[:3, :3] = rpy_matrix(math.radians(-90.0), math.radians(1.5), math.radians(-90.0))
+    v[:3, 3] = [1.8, -0.02, 1.35]
+    model = {
+        "reference_camera": ref,
+        "cameras": [
+            {"id": e["camera"], "translation": e["translation"], "quaternion_wxyz": e["quaternion_wxyz"],
+             **({} if e["camera"] == ref else {"tolerance": {"translation_mm": 50.0, "rotation_deg": 2.0}})}
+            for e in result["extrinsics"]
+        ],
+        "vehicle_from_ref": {"translation": list(v[:3, 3]), "rpy_deg": [-90.0, 1.5, -90.0]},
+    }
+    model["cameras"][0]["translation"] = [0.0, 0.0, 0.0]
+    model["cameras"][0]["quaternion_wxyz"] = [1.0, 0.0, 0.0, 0.0]
+    model_path = work / f"{where}-model.json"
+    model_path.write_text(json.dumps(model))
+    want = {c: v @ m for c, m in truth_of(result).items()}
+    args = ["--frame", "vehicle", "--vehicle-model", str(model_path)]
+    for fmt in ["kalibr", "opencv", "urdf", "ros2", "colmap"]:
+        p = run(binary, "calibrate", str(session_path), "--format", fmt, *args)
+        if fmt == "colmap":
+            if p.returncode == 0 or "ref_sensor" not in p.stderr:
+                fail(f"{where} colmap vehicle", f"expected a refusal, got {p.returncode} {p.stderr!r}")
+            continue
+        if p.returncode not in (0, 3):
+            fail(f"{where} {fmt} vehicle", p.stderr)
+        if "from nominal" not in p.stderr:
+            fail(f"{where} {fmt} vehicle", f"no deviation from nominal printed: {p.stderr!r}")
+        if fmt == "kalibr":
+            data = yaml.safe_load(p.stdout)
+            for i, cam_id in enumerate(cams):
+                t = data[f"cam{i}"]["T_vehicle_cam"]
+                if not all(isinstance(x, float) for row in t for x in row):
+                    fail(f"{where} kalibr vehicle", "T_vehicle_cam is not a 4x4 float matrix")
+                close(f"{where} kalibr vehicle cam{i}", t, want[cam_id])
+            check_kalibr(f"{where} kalibr vehicle", p.stdout, cams, truth_of(result), session)
+        elif fmt == "opencv":
+            path = work / f"{where}-vehicle.yaml"
+            path.write_text(p.stdout)
+            check_opencv(f"{where} opencv vehicle", path, cams, want)
+        else:
+            root = ET.fromstring(p.stdout)
+            edges = {}
+            if fmt == "urdf":
+                for j in root.iter("joint"):
+                    o = j.find("origin")
+                    m = np.eye(4)
+                    m[:3, :3] = rpy_matrix(*map(float, o.get("rpy").split()))
+                    m[:3, 3] = list(map(float, o.get("xyz").split()))
+                    edges[j.find("child").get("link")] = (j.find("parent").get("link"), m)
+            else:
+                for n in root.iter("node"):
+                    a = n.get("args").split()
+                    kv = dict(zip(a[::2], a[1::2]))
+                    m = np.eye(4)
+                    m[:3, :3] = quat_matrix(*[float(kv[k]) for k in ["--qx", "--qy", "--qz", "--qw"]])
+                    m[:3, 3] = [float(kv[k]) for k in ["--x", "--y", "--z"]]
+                    edges[kv["--child-frame-id"]] = (kv["--frame-id"], m)
+            poses = tf_tree(edges, "base_link")
+            for cam_id in cams:
+                err = np.abs(poses[f"{cam_id}_optical_frame"] - want[cam_id]).max()
+                if not err <= 1e-9:
+                    fail(f"{where} {fmt} vehicle {cam_id}", f"base_link chain differs by {err:.3g}")
+    p = run(binary, "calibrate", str(session_path), "--format", "urdf", "--frame", "vehicle")
+    if p.returncode == 0 or "--vehicle-model" not in p.stderr:
+        fail(f"{where} vehicle", f"--frame vehicle without a model: {p.stderr!r}")
+    print(f"ok {where}: vehicle frame")
+
+
 def main():
     binary, work = sys.argv[1], Path(sys.argv[2])
     for preset in PRESETS:
         d = work / preset
         subprocess.run([binary, "synth", "--preset", preset, "--seed", "5", "--noise", "0.3", "--out", str(d)], check=True, capture_output=True)
         check_session(binary, preset, d / "session.json")
+        if preset in ("lebraly-5.1", "car-bump", "fisheye-handheld"):
+            result = json.loads(run(binary, "calibrate", str(d / "session.json")).stdout)
+            check_vehicle_frame(binary, preset, work, d / "session.json", result)
     # Awkward but valid ids: YAML keywords and numbers, XML comment breakers, dots.
     base = json.loads((work / "lebraly-5.1" / "session.json").read_text())
     ids = [c["id"] for c in base["cameras"]]

@@ -98,6 +98,10 @@ pub struct FleetStats {
     /// Length of a drift period (ms).
     pub bucket_ms: i64,
     pub drift: Vec<DriftSeries>,
+    /// Per camera (model order) and axis, every vehicle's latest value with whether it
+    /// is an outlier there: what the fleet figure draws (not in the JSON answer).
+    #[serde(skip)]
+    pub latest: Vec<[Vec<(f64, bool)>; 6]>,
 }
 
 fn median(xs: &mut [f64]) -> f64 {
@@ -192,6 +196,7 @@ pub fn stats(
             axes,
         });
     }
+    let mut values: Vec<[Vec<(f64, bool)>; 6]> = vec![Default::default(); cameras.len()];
     let mut outliers = Vec::new();
     for &k in latest.values() {
         let mut axes = Vec::new();
@@ -204,6 +209,7 @@ pub fn stats(
                 let (m, s) = centre[c][a];
                 let z = (v[a] - m) / s;
                 max_abs_z = max_abs_z.max(z.abs());
+                values[c][a].push((v[a], z.abs() > outlier_z));
                 if z.abs() > outlier_z {
                     axes.push(OutlierAxis {
                         camera: id.clone(),
@@ -264,6 +270,7 @@ pub fn stats(
         outliers,
         bucket_ms,
         drift,
+        latest: values,
     })
 }
 

@@ -106,3 +106,48 @@ pub async fn drift(
     }
     Ok(svg_response(svg::drift_chart(&series, h.len())))
 }
+
+#[derive(serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FleetFigureQuery {
+    camera: String,
+}
+
+/// `GET /v1/vehicle-models/{model}/fleet.svg?camera=ID`: one camera of the fleet.
+pub async fn fleet(
+    State(state): State<AppState>,
+    AuthTenant(tenant): AuthTenant,
+    Path(model): Path<String>,
+    axum::extract::RawQuery(raw): axum::extract::RawQuery,
+) -> Result<Response, ApiError> {
+    let q: FleetFigureQuery =
+        serde_urlencoded::from_str(raw.as_deref().unwrap_or("")).map_err(|e| {
+            ApiError::new(
+                StatusCode::BAD_REQUEST,
+                "invalid-query",
+                format!("query: {e}; expected camera=ID"),
+            )
+            .field("query")
+        })?;
+    let (row, s) = super::vehicle_models::fleet_of(&state, &tenant.id, &model, None, None).await?;
+    let Some(c) = s.cameras.iter().position(|c| c.camera == q.camera) else {
+        let ids: Vec<&str> = s.cameras.iter().map(|c| c.camera.as_str()).collect();
+        return Err(ApiError::invalid(rigcal_core::session::InputError::new(
+            "camera",
+            format!(
+                "a camera of vehicle model {} other than its reference: one of {}",
+                row.model,
+                ids.join(", ")
+            ),
+        )));
+    };
+    let drift: Vec<&crate::fleet::DriftSeries> =
+        s.drift.iter().filter(|d| d.camera == q.camera).collect();
+    Ok(svg_response(svg::fleet_chart(
+        &q.camera,
+        &s.cameras[c].axes,
+        &s.latest[c],
+        s.outlier_z,
+        &drift,
+    )))
+}

@@ -183,6 +183,7 @@ pub fn build_app(state: AppState) -> Router {
                 .get(vehicle_models::show),
         )
         .route("/vehicle-models/{model}/fleet", get(vehicle_models::fleet))
+        .route("/vehicle-models/{model}/fleet.svg", get(figures::fleet))
         .route(
             "/vehicles/{vehicle_id}/calibrations",
             get(vehicles::calibrations),

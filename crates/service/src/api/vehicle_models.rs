@@ -104,6 +104,45 @@ pub async fn list(
     ))
 }
 
+/// The fleet statistics of `model` with the query's threshold and period (checked here,
+/// named by their parameters), and the model.
+pub async fn fleet_of(
+    state: &AppState,
+    tenant_id: &str,
+    model: &str,
+    z: Option<&str>,
+    bucket: Option<&str>,
+) -> Result<(ModelRow, fleet::FleetStats), ApiError> {
+    let row = model_or_404(state, tenant_id, model).await?;
+    let z = match z {
+        None => row.document.fleet_outlier_z,
+        Some(s) => match s.parse::<f64>() {
+            Ok(z) if z.is_finite() && (1.0..=100.0).contains(&z) => z,
+            _ => {
+                return Err(ApiError::invalid(InputError::new(
+                    "z",
+                    format!("a robust z-score between 1 and 100, got {s:?}"),
+                )))
+            }
+        },
+    };
+    const DAY: i64 = 86_400_000;
+    let bucket_ms = match bucket.unwrap_or("week") {
+        "day" => DAY,
+        "week" => 7 * DAY,
+        "month" => 30 * DAY,
+        other => {
+            return Err(ApiError::invalid(InputError::new(
+                "bucket",
+                format!("one of day, week, month, got {other:?}"),
+            )))
+        }
+    };
+    let jobs = state.store.fleet_jobs(tenant_id, model).await?;
+    let s = fleet::stats(&row.document, &jobs, z, bucket_ms).map_err(ApiError::internal)?;
+    Ok((row, s))
+}
+
 #[derive(Deserialize, Default)]
 #[serde(deny_unknown_fields)]
 struct FleetQuery {
@@ -126,33 +165,19 @@ pub async fn fleet(
         )
         .field("query")
     })?;
-    let row = model_or_404(&state, &tenant.id, &model).await?;
-    let z = match q.z.as_deref() {
-        None => row.document.fleet_outlier_z,
-        Some(s) => match s.parse::<f64>() {
-            Ok(z) if z.is_finite() && (1.0..=100.0).contains(&z) => z,
-            _ => {
-                return Err(ApiError::invalid(InputError::new(
-                    "z",
-                    format!("a robust z-score between 1 and 100, got {s:?}"),
-                )))
-            }
-        },
+    let (_, s) = fleet_of(
+        &state,
+        &tenant.id,
+        &model,
+        q.z.as_deref(),
+        q.bucket.as_deref(),
+    )
+    .await?;
+    let bucket = match s.bucket_ms / 86_400_000 {
+        1 => "day",
+        7 => "week",
+        _ => "month",
     };
-    const DAY: i64 = 86_400_000;
-    let (bucket, bucket_ms) = match q.bucket.as_deref().unwrap_or("week") {
-        "day" => ("day", DAY),
-        "week" => ("week", 7 * DAY),
-        "month" => ("month", 30 * DAY),
-        other => {
-            return Err(ApiError::invalid(InputError::new(
-                "bucket",
-                format!("one of day, week, month, got {other:?}"),
-            )))
-        }
-    };
-    let jobs = state.store.fleet_jobs(&tenant.id, &model).await?;
-    let s = fleet::stats(&row.document, &jobs, z, bucket_ms).map_err(ApiError::internal)?;
     let outliers: Vec<Value> = s
         .outliers
         .iter()

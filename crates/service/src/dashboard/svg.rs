@@ -53,6 +53,8 @@ fn ticks(lo: f64, hi: f64, step: f64) -> impl Iterator<Item = f64> {
 
 fn fmt_tick(v: f64, step: f64) -> String {
     let decimals = (-step.log10().floor()).clamp(0.0, 6.0) as usize;
+    // A tick at zero reached by adding steps is a rounding residue: never "-0.0".
+    let v = if v.abs() < 1e-9 * step { 0.0 } else { v };
     format!("{v:.decimals$}")
 }
 
@@ -544,6 +546,191 @@ pub fn drift_chart(series: &[DriftSeries], calibrations: usize) -> String {
     svg
 }
 
+/// One camera of a vehicle model's fleet: every vehicle's latest deviation from the
+/// nominal rig on each of the six axes (a dot per vehicle, outliers larger and in
+/// vermilion, the fleet median as a line, the band of ±`z` spreads shaded), and below,
+/// the drift of the fleet median per period.
+pub fn fleet_chart(
+    camera: &str,
+    stats: &[crate::fleet::AxisStats],
+    latest: &[Vec<(f64, bool)>; 6],
+    z: f64,
+    drift: &[&crate::fleet::DriftSeries],
+) -> String {
+    let (w, strip, gap) = (640.0, 34.0, 22.0);
+    let top = 10.0;
+    let drift_top = top + 6.0 * (strip + gap) + 10.0;
+    let h = drift_top + 2.0 * 150.0 + 10.0;
+    let n = latest[0].len();
+    let mut svg = open(
+        w,
+        h,
+        &format!("Fleet: camera {camera}"),
+        &format!(
+            "Camera {camera}: the latest accepted calibration of each of {n} vehicles as its deviation from the nominal rig, translation in millimetres and rotation in degrees per reference axis; outliers beyond {z} robust spreads marked; then the fleet median per period."
+        ),
+    );
+    let (x0, pw) = (110.0, w - 130.0);
+    for (a, st) in stats.iter().enumerate().take(6) {
+        let y0 = top + a as f64 * (strip + gap);
+        let vals = &latest[a];
+        let band = (st.median - z * st.spread, st.median + z * st.spread);
+        let (mut lo, mut hi) = vals
+            .iter()
+            .fold((band.0, band.1), |(l, h), &(v, _)| (l.min(v), h.max(v)));
+        if !(lo.is_finite() && hi.is_finite()) {
+            (lo, hi) = (-1.0, 1.0);
+        }
+        let pad = ((hi - lo) * 0.05).max(1e-6);
+        let (lo, hi) = (lo - pad, hi + pad);
+        let px = |v: f64| x0 + (v - lo) / (hi - lo) * pw;
+        let _ = write!(
+            svg,
+            "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"end\" fill=\"#111\">{} ({})</text>",
+            x0 - 8.0,
+            y0 + strip / 2.0 + 4.0,
+            st.axis,
+            st.unit
+        );
+        if band.0.is_finite() && band.1.is_finite() {
+            let _ = write!(
+                svg,
+                "<rect x=\"{:.1}\" y=\"{y0:.1}\" width=\"{:.1}\" height=\"{strip}\" fill=\"#eef3f8\"/>",
+                px(band.0),
+                (px(band.1) - px(band.0)).max(0.5)
+            );
+        }
+        if st.median.is_finite() {
+            let _ = write!(
+                svg,
+                "<line x1=\"{0:.1}\" y1=\"{y0:.1}\" x2=\"{0:.1}\" y2=\"{1:.1}\" stroke=\"#0072B2\" stroke-width=\"2\"><title>median {2:.4} {3}</title></line>",
+                px(st.median),
+                y0 + strip,
+                st.median,
+                st.unit
+            );
+        }
+        let _ = write!(
+            svg,
+            "<line x1=\"{x0:.1}\" y1=\"{0:.1}\" x2=\"{1:.1}\" y2=\"{0:.1}\" stroke=\"#444\"/>",
+            y0 + strip,
+            x0 + pw
+        );
+        let step = tick_step(hi - lo, 6.0);
+        for v in ticks(lo, hi, step) {
+            let _ = write!(
+                svg,
+                "<text x=\"{:.1}\" y=\"{:.1}\" text-anchor=\"middle\" fill=\"#333\" font-size=\"10\">{}</text>",
+                px(v),
+                y0 + strip + 12.0,
+                fmt_tick(v, step)
+            );
+        }
+        for (i, &(v, out)) in vals.iter().enumerate() {
+            // Deterministic jitter so that equal values stay visible as a column.
+            let jy = y0 + 4.0 + ((i * 7919) % 97) as f64 / 96.0 * (strip - 8.0);
+            let (r, colour) = if out { (4.0, "#D55E00") } else { (2.0, "#555") };
+            let _ = write!(
+                svg,
+                "<circle cx=\"{:.1}\" cy=\"{jy:.1}\" r=\"{r}\" fill=\"{colour}\"{}/>",
+                px(v),
+                if out { " class=\"outlier\"" } else { "" }
+            );
+        }
+    }
+    for (panel, unit) in ["mm", "deg"].into_iter().enumerate() {
+        let series: Vec<&&crate::fleet::DriftSeries> =
+            drift.iter().filter(|d| d.unit == unit).collect();
+        let pts = series.iter().flat_map(|d| d.points.iter());
+        let (xmin, xmax, ymin, ymax) = pts.fold(
+            (
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+                f64::INFINITY,
+                f64::NEG_INFINITY,
+            ),
+            |(a, b, c, d), p| {
+                let x = p.from as f64 / 86_400_000.0;
+                (a.min(x), b.max(x), c.min(p.median), d.max(p.median))
+            },
+        );
+        let (xmin, xmax) = if xmin.is_finite() {
+            (xmin - 1.0, xmax + 1.0)
+        } else {
+            (0.0, 1.0)
+        };
+        let (ymin, ymax) = if ymin.is_finite() {
+            let pad = ((ymax - ymin) * 0.15).max(1e-4);
+            (ymin - pad, ymax + pad)
+        } else {
+            (-1.0, 1.0)
+        };
+        let f = Frame {
+            x0: 76.0,
+            y0: drift_top + panel as f64 * 150.0,
+            w: w - 196.0,
+            h: 100.0,
+            xmin,
+            xmax,
+            ymin,
+            ymax,
+            integer_x: true,
+        };
+        f.axes(
+            &mut svg,
+            if panel == 1 {
+                "period start (days since 1970-01-01)"
+            } else {
+                ""
+            },
+            &format!("median ({unit})"),
+            true,
+        );
+        for (i, d) in series.iter().enumerate() {
+            let colour = PALETTE[i % PALETTE.len()];
+            let line: Vec<String> = d
+                .points
+                .iter()
+                .map(|p| {
+                    format!(
+                        "{:.1},{:.1}",
+                        f.px(p.from as f64 / 86_400_000.0),
+                        f.py(p.median)
+                    )
+                })
+                .collect();
+            let _ = write!(
+                svg,
+                "<polyline points=\"{}\" fill=\"none\" stroke=\"{colour}\" stroke-width=\"1.5\"/>",
+                line.join(" ")
+            );
+            for p in &d.points {
+                let _ = write!(
+                    svg,
+                    "<circle cx=\"{:.1}\" cy=\"{:.1}\" r=\"2.5\" fill=\"{colour}\"><title>{} {}: median {:.4} {unit} of {}</title></circle>",
+                    f.px(p.from as f64 / 86_400_000.0),
+                    f.py(p.median),
+                    esc(camera),
+                    d.axis,
+                    p.median,
+                    p.count
+                );
+            }
+            let _ = write!(
+                svg,
+                "<rect x=\"{:.1}\" y=\"{:.1}\" width=\"12\" height=\"12\" fill=\"{colour}\"/><text x=\"{:.1}\" y=\"{:.1}\" fill=\"#111\">{}</text>",
+                w - 110.0,
+                f.y0 + 6.0 + i as f64 * 18.0,
+                w - 92.0,
+                f.y0 + 16.0 + i as f64 * 18.0,
+                d.axis
+            );
+        }
+    }
+    svg.push_str("</svg>");
+    svg
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -567,6 +754,8 @@ mod tests {
         assert_eq!(tick_step(0.0, 4.0), 1.0);
         assert_eq!(fmt_tick(0.4, 0.2), "0.4");
         assert_eq!(fmt_tick(20.0, 5.0), "20");
+        assert_eq!(fmt_tick(-0.1 + 0.1, 0.1), "0.0");
+        assert_eq!(fmt_tick(-1e-17, 0.2), "0.0");
     }
 
     #[test]
@@ -579,6 +768,50 @@ mod tests {
         assert_eq!(svg.matches("<rect x=").count(), 3);
         assert!(svg.contains("0.000–0.500 px: 10"));
         assert!(svg.starts_with("<svg") && svg.ends_with("</svg>"));
+    }
+
+    #[test]
+    fn fleet_chart_marks_outliers_and_draws_every_vehicle() {
+        use crate::fleet::{AxisStats, DriftPoint, DriftSeries as Fleet};
+        let stats: Vec<AxisStats> = crate::fleet::AXES
+            .iter()
+            .map(|&(axis, unit)| AxisStats {
+                axis,
+                unit,
+                median: 0.0,
+                spread: 1.0,
+                count: 4,
+            })
+            .collect();
+        let col = vec![(0.1, false), (-0.4, false), (0.3, false), (9.0, true)];
+        let latest: [Vec<(f64, bool)>; 6] = std::array::from_fn(|_| col.clone());
+        let drift: Vec<Fleet> = crate::fleet::AXES
+            .iter()
+            .map(|&(axis, unit)| Fleet {
+                camera: "rear".into(),
+                axis,
+                unit,
+                points: vec![
+                    DriftPoint {
+                        from: 0,
+                        median: 0.1,
+                        count: 2,
+                    },
+                    DriftPoint {
+                        from: 604_800_000,
+                        median: 0.2,
+                        count: 2,
+                    },
+                ],
+            })
+            .collect();
+        let refs: Vec<&Fleet> = drift.iter().collect();
+        let svg = fleet_chart("<rear>", &stats, &latest, 5.0, &refs);
+        assert_eq!(svg.matches("class=\"outlier\"").count(), 6);
+        // 4 vehicles × 6 axes, plus 2 periods × 6 drift series.
+        assert_eq!(svg.matches("<circle").count(), 24 + 12);
+        assert!(svg.contains("&lt;rear&gt;") && !svg.contains("<rear>"));
+        assert_eq!(svg.matches("<polyline").count(), 6);
     }
 
     #[test]

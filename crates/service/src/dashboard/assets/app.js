@@ -546,12 +546,13 @@ async function renderJob(id, first = true) {
       h("dt", {}, "Status"), h("dd", { id: "job-progress" }, badge(job.status), " ", progressCell(job)),
       h("dt", {}, "Acceptance"), h("dd", {}, acceptanceMark(job), job.acceptance && job.acceptance.reasons.length ? h("span", { class: "muted" }, " " + job.acceptance.reasons.join("; ")) : null),
       h("dt", {}, "Vehicle"), h("dd", {}, job.vehicle_id ? h("a", { href: `#/vehicles/${encodeURIComponent(job.vehicle_id)}` }, job.vehicle_id) : "–"),
+      h("dt", {}, "Vehicle model"), h("dd", {}, job.vehicle_model ? h("a", { href: `#/fleet/${encodeURIComponent(job.vehicle_model)}` }, job.vehicle_model) : "–"),
       h("dt", {}, "Method"), h("dd", {}, job.method),
       h("dt", {}, "Created"), h("dd", {}, when(job.created_at)),
       h("dt", {}, "Duration"), h("dd", {}, duration(job)),
       h("dt", {}, "Residual RMS"), h("dd", { id: "rms" }, job.residual_rms_px === null ? "–" : `${fmt(job.residual_rms_px, 3)} px`),
       h("dt", {}, "Attempts"), h("dd", {}, `${job.attempts} of ${job.max_attempts}`)));
-  const parts = [head, failureBox(job, doc)];
+  const parts = [head, failureBox(job, doc), nominalBox(job)];
   if (doc && doc.extrinsics.length) {
     const labels = { json: "JSON", kalibr: "Kalibr", opencv: "OpenCV", urdf: "URDF", colmap: "COLMAP rig", ros2: "ROS 2 tf" };
     const button = (f, label, camera) => {
@@ -580,6 +581,69 @@ async function renderJob(id, first = true) {
   const title = `Job ${job.id.slice(0, 8)}`;
   if (first) show(title, ...parts.filter(Boolean));
   else { main().replaceChildren(...parts.filter(Boolean)); announce(`Job ${job.status}`); }
+}
+
+// Every camera against the vehicle model's nominal rig (when the session names one).
+function nominalBox(job) {
+  const n = job.acceptance && job.acceptance.nominal;
+  if (!n || !n.cameras.length) return null;
+  const bound = (b, unit) => Array.isArray(b) ? `per axis ${b.map((x) => fmt(x, 3)).join(" / ")} ${unit}` : `${fmt(b, 3)} ${unit} (norm)`;
+  const rows = n.cameras.map((d) => h("tr", { dataset: { camera: d.camera, within: String(d.within_tolerance) } },
+    h("th", { scope: "row" }, d.camera),
+    h("td", { class: "num" }, d.translation_mm ? d.translation_mm.map((x) => fmt(x, 2)).join(", ") : "–"),
+    h("td", { class: "num" }, d.rotation_deg ? d.rotation_deg.map((x) => fmt(x, 3)).join(", ") : "–"),
+    h("td", {}, `${bound(d.tolerance.translation_mm, "mm")}; ${bound(d.tolerance.rotation_deg, "°")}`),
+    h("td", {}, d.within_tolerance ? h("span", { class: "badge pass" }, "✓ within") : h("span", { class: "badge fail", title: d.exceeded.join("; ") }, "✗ " + d.exceeded.join("; ")))));
+  return h("section", { class: "nominal" },
+    h("h2", {}, `Against the nominal rig of ${n.vehicle_model}`),
+    h("div", { class: "table-wrap" }, h("table", {},
+      h("thead", {}, h("tr", {}, ["Camera", "Δt (mm, x y z)", "Δrotation (°, x y z)", "Tolerance", "Verdict"].map((c) => h("th", { scope: "col" }, c)))),
+      h("tbody", {}, rows))));
+}
+
+// ---- Fleet -------------------------------------------------------------------------
+
+async function renderFleetList() {
+  state.view = { name: "fleet" };
+  let data;
+  try { data = await api("/v1/vehicle-models"); } catch (e) { show("Fleet", h("h1", {}, "Fleet"), problemBox(e)); return; }
+  const models = data.vehicle_models;
+  show("Fleet", h("h1", {}, "Vehicle models"),
+    models.length
+      ? h("ul", { class: "models" }, ...models.map((m) => h("li", {}, h("a", { href: `#/fleet/${encodeURIComponent(m.model)}` }, m.model), ` — reference ${m.reference_camera}, ${m.cameras.length} cameras`)))
+      : h("p", { class: "muted" }, "No vehicle model yet: PUT /v1/vehicle-models/{model} with the nominal rig (see /docs)."));
+}
+
+async function renderFleet(model) {
+  const view = { name: "fleet", id: model };
+  state.view = view;
+  let f;
+  try { f = await api(`/v1/vehicle-models/${encodeURIComponent(model)}/fleet`); } catch (e) { show(`Fleet ${model}`, h("h1", {}, `Fleet ${model}`), problemBox(e)); return; }
+  const outliers = f.outliers.map((o) => h("tr", { dataset: { vehicle: o.vehicle_id } },
+    h("td", {}, h("a", { href: `#/vehicles/${encodeURIComponent(o.vehicle_id)}` }, o.vehicle_id)),
+    h("td", {}, h("a", { href: `#/jobs/${o.job_id}` }, h("code", {}, o.job_id.slice(0, 8)))),
+    h("td", {}, when(o.finished_at)),
+    h("td", { class: "num" }, fmt(o.max_abs_z, 1)),
+    h("td", {}, o.axes.map((a) => `${a.camera} ${a.axis} ${fmt(a.value, 3)} ${a.unit} (z ${fmt(a.z, 1)})`).join("; "))));
+  const cameras = f.cameras.map((c) => {
+    const chart = h("figure", { class: "figure wide", dataset: { camera: c.camera } }, h("p", { class: "muted" }, "Loading fleet chart…"));
+    api(`/v1/vehicle-models/${encodeURIComponent(model)}/fleet.svg?camera=${encodeURIComponent(c.camera)}`).then((svg) => {
+      const el = new DOMParser().parseFromString(svg, "image/svg+xml").documentElement;
+      chart.replaceChildren(document.importNode(el, true));
+    }).catch((e) => chart.replaceChildren(problemBox(e)));
+    return h("section", {}, h("h2", {}, `Camera ${c.camera}`),
+      h("div", { class: "table-wrap" }, h("table", { class: "fleet-axes" },
+        h("thead", {}, h("tr", {}, ["Axis", "Median", "Robust spread", "Vehicles"].map((x) => h("th", { scope: "col" }, x)))),
+        h("tbody", {}, c.axes.map((a) => h("tr", {}, h("th", { scope: "row" }, `${a.axis} (${a.unit})`), h("td", { class: "num" }, fmt(a.median, 4)), h("td", { class: "num" }, fmt(a.spread, 4)), h("td", { class: "num" }, String(a.count))))))),
+      chart);
+  });
+  show(`Fleet ${model}`, h("h1", {}, `Fleet of ${model}`),
+    h("p", {}, `${f.vehicles} vehicle(s), ${f.calibrations} accepted calibration(s). Every number is a camera's deviation from the nominal rig; a vehicle is an outlier when its latest calibration is more than ${f.outlier_z} robust spreads from the fleet median on some axis.`),
+    h("h2", {}, `Outliers (${f.outliers.length})`),
+    f.outliers.length
+      ? h("div", { class: "table-wrap" }, h("table", { id: "outliers" }, h("thead", {}, h("tr", {}, ["Vehicle", "Job", "Finished", "max |z|", "Axes beyond the threshold"].map((x) => h("th", { scope: "col" }, x)))), h("tbody", {}, outliers)))
+      : h("p", { class: "muted" }, "No outlier."),
+    ...cameras);
 }
 
 // ---- A vehicle ---------------------------------------------------------------------
@@ -681,6 +745,8 @@ function route() {
   if (!state.stream) startStream();
   if (parts[0] === "jobs" && parts[1]) renderJob(decodeURIComponent(parts[1]));
   else if (parts[0] === "vehicles" && parts[1]) renderVehicle(decodeURIComponent(parts[1]));
+  else if (parts[0] === "fleet" && parts[1]) renderFleet(decodeURIComponent(parts[1]));
+  else if (parts[0] === "fleet") renderFleetList();
   else if (parts[0] === "upload") renderUpload();
   else renderJobs(query);
 }
