@@ -101,7 +101,8 @@ async fn fill_fleet(c: &reqwest::Client, s: &Server) -> (String, String) {
             {"id": "cam2", "translation": [p.trans.x, p.trans.y, p.trans.z],
              "quaternion_wxyz": so3::to_quaternion(&p.rot),
              "tolerance": {"translation_mm": 10.0, "rotation_deg": 0.5}}
-        ]
+        ],
+        "vehicle_from_ref": {"translation": [1.9, 0.0, 1.4], "rpy_deg": [-90.0, 0.0, -90.0]}
     });
     let r = c
         .put(s.url("/v1/vehicle-models/rig-e2e"))

@@ -249,6 +249,15 @@ try {
   await fp.locator("section.nominal tr[data-camera=cam2][data-within=false]").waitFor();
   assert.match(await fp.locator("section.nominal").textContent(), /rotation [12]\.\d{3} deg from nominal exceeds 0\.5/);
   assert.equal(await fp.locator("[data-acceptance]").first().getAttribute("data-acceptance"), "fail");
+  // Exports in the vehicle frame: the download is the API's export with frame=vehicle.
+  await fp.getByLabel("Export frame").selectOption("vehicle");
+  const [vdl] = await Promise.all([fp.waitForEvent("download"), fp.locator("button[data-format=urdf]").click()]);
+  const vfile = path.join(shots, vdl.suggestedFilename());
+  await vdl.saveAs(vfile);
+  const vwant = await apiText(cfg.fleet.base, cfg.fleet.key, `/v1/jobs/${cfg.fleet.knocked_job}/result?format=urdf&frame=vehicle`);
+  assert.equal(fs.readFileSync(vfile, "utf8"), vwant, "vehicle-frame URDF download equals the API export");
+  assert.match(vwant, /<parent link="base_link"\/>/);
+  assert.match(vdl.suggestedFilename(), /-urdf-vehicle\.urdf$/);
   await shot(fp, "07c-nominal");
   await accessible(fp, "job page against the nominal rig");
   await fctx.close();

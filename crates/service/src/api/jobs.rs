@@ -618,9 +618,10 @@ pub async fn result(
                 (
                     header::CONTENT_DISPOSITION,
                     format!(
-                        "attachment; filename=\"rigcal-{}-{name}{}.{ext}\"",
+                        "attachment; filename=\"rigcal-{}-{name}{}{}.{ext}\"",
                         &job.id,
-                        q.camera.as_deref().map_or(String::new(), |c| format!("-{c}"))
+                        q.camera.as_deref().map_or(String::new(), |c| format!("-{c}")),
+                        if vehicle_frame { "-vehicle" } else { "" }
                     ),
                 ),
             ],

@@ -486,7 +486,10 @@ async function download(jobId, format, button, camera) {
   button.disabled = true;
   try {
     const cam = camera ? `&camera=${encodeURIComponent(camera)}` : "";
-    const resp = await api(`/v1/jobs/${encodeURIComponent(jobId)}/result?format=${format}${cam}`, { raw: true });
+    // The frame chosen on the job page (vehicle-model jobs only); JSON is always the result itself.
+    const picked = document.getElementById("export-frame");
+    const frame = picked && picked.value === "vehicle" && format !== "json" ? "&frame=vehicle" : "";
+    const resp = await api(`/v1/jobs/${encodeURIComponent(jobId)}/result?format=${format}${cam}${frame}`, { raw: true });
     const blob = await resp.blob();
     const cd = resp.headers.get("content-disposition") || "";
     const m = cd.match(/filename="([^"]+)"/);
@@ -565,7 +568,14 @@ async function renderJob(id, first = true) {
     const dl = h("div", { class: "downloads" },
       ...Object.entries(labels).filter(([f]) => !failed || f === "json").map(([f, label]) => button(f, label)),
       ...(failed ? [] : doc.extrinsics.map((e) => button("camera_info", `camera_info ${e.camera}`, e.camera))));
-    parts.push(h("h2", {}, `Extrinsics relative to ${doc.reference_camera}`), extrinsicsTable(doc), dl);
+    // A vehicle model places the rig in the vehicle frame: the exports can be in it.
+    const frame = job.vehicle_model && !failed
+      ? h("p", {}, h("label", { for: "export-frame" }, "Export frame "),
+        h("select", { id: "export-frame" },
+          h("option", { value: "reference" }, `reference camera (${doc.reference_camera})`),
+          h("option", { value: "vehicle" }, `vehicle frame of ${job.vehicle_model} (not COLMAP)`)))
+      : null;
+    parts.push(h("h2", {}, `Extrinsics relative to ${doc.reference_camera}`), extrinsicsTable(doc), frame, dl);
   }
   if (doc) {
     parts.push(singularityBox(doc), vanishingBox(doc));
