@@ -4,7 +4,7 @@
 # moto's S3 server and Python venvs for the contract test and the format checks), then
 # runs every test: `cargo test --release --workspace` (unit, engine, service over real
 # HTTP, crash test, the dashboard in headless Chromium) on the embedded default (SQLite,
-# local blobs); the service, queue, crash, fleet, client, dashboard-API and vehicle-model tests again on a
+# local blobs); the service, queue, crash, fleet, client, dashboard-API, vehicle-model and webhook tests again on a
 # throwaway PostgreSQL cluster and S3-compatible server; the HTTP contract test
 # (schemathesis against the live server) and the export format checks (PyYAML, OpenCV,
 # pycolmap in a venv). .ci/run calls this same script.
@@ -59,7 +59,7 @@ source scripts/backends.sh
 trap stop_backends EXIT
 start_backends
 cargo test --release --test service --test queue --test crash --test fleet --test client \
-  --test dashboard_api --test idempotency --test bundle --test blobs --test vehicle_models "$@"
+  --test dashboard_api --test idempotency --test bundle --test blobs --test vehicle_models --test webhooks "$@"
 stop_backends
 trap - EXIT
 # The HTTP contract: openapi.yaml against the running server (built by the line above).

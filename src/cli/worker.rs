@@ -20,6 +20,10 @@ pub struct JobArgs {
     #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", value_parser = RangedU64ValueParser::<u64>::new().range(1..),
           default_value_t = WorkerConfig::default().max_image_pixels)]
     pub max_image_pixels: u64,
+    /// Deliver webhooks to loopback, private and link-local addresses too (refused by
+    /// default: a tenant could otherwise make the server call its own network).
+    #[arg(long, env = "RIGCAL_ALLOW_PRIVATE_WEBHOOKS")]
+    pub allow_private_webhooks: bool,
 }
 
 impl JobArgs {
@@ -28,6 +32,10 @@ impl JobArgs {
             workers,
             lease: Duration::from_secs(self.lease_seconds),
             max_image_pixels: self.max_image_pixels,
+            webhooks: rigcal_service::webhooks::WebhookConfig {
+                allow_private: self.allow_private_webhooks,
+                ..Default::default()
+            },
             ..WorkerConfig::default()
         }
     }

@@ -8,3 +8,4 @@ pub mod jobs;
 pub mod signals;
 pub mod store;
 pub mod telemetry;
+pub mod webhooks;

@@ -15,6 +15,7 @@ mod sessions;
 mod tenant;
 mod vehicle_models;
 mod vehicles;
+mod webhooks;
 
 use crate::jobs::queue::Queue;
 use crate::jobs::worker::{self, WorkerConfig};
@@ -175,6 +176,17 @@ pub fn build_app(state: AppState) -> Router {
         .route("/jobs/{id}/result", get(jobs::result))
         .route("/jobs/{id}/bundle", get(bundle::bundle))
         .route("/jobs/{id}/diagnostics", get(jobs::diagnostics))
+        .route(
+            "/webhooks",
+            post(webhooks::create)
+                .layer(body_limit(64 << 10))
+                .get(webhooks::list),
+        )
+        .route(
+            "/webhooks/{id}",
+            get(webhooks::show).delete(webhooks::delete),
+        )
+        .route("/webhooks/{id}/deliveries", get(webhooks::deliveries))
         .route("/vehicle-models", get(vehicle_models::list))
         .route(
             "/vehicle-models/{model}",

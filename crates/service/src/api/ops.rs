@@ -214,6 +214,7 @@ mod tests {
                 || path.starts_with("/jobs")
                 || path.starts_with("/vehicles")
                 || path.starts_with("/vehicle-models")
+                || path.starts_with("/webhooks")
                 || path == "/events"
                 || path.starts_with("/tenant")
             {

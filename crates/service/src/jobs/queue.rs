@@ -220,6 +220,10 @@ async fn event(
     progress: f64,
     message: Option<&str>,
 ) -> sqlx::Result<()> {
+    if kind == "status" && JobStatus::parse(status).is_some_and(JobStatus::is_terminal) {
+        // The webhook outbox, in the transaction that ends the job.
+        crate::store::webhooks::enqueue(tx, job, status).await?;
+    }
     tx.order_events().await?;
     tx.execute(sql("INSERT INTO job_events (job_id, at, kind, status, stage, progress, message) VALUES ($1, $2, $3, $4, $5, $6, $7)")
         .bind(job)

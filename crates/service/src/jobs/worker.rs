@@ -34,6 +34,8 @@ pub struct WorkerConfig {
     /// Largest image decoded at detection: the same budget the upload was checked
     /// against (`--max-image-pixels`), so an image the API accepted is never skipped.
     pub max_image_pixels: u64,
+    /// The webhook dispatcher every process with workers (or an API) runs beside them.
+    pub webhooks: crate::webhooks::WebhookConfig,
 }
 
 impl Default for WorkerConfig {
@@ -44,11 +46,12 @@ impl Default for WorkerConfig {
             poll: Duration::from_millis(200),
             backoff: Duration::from_secs(2),
             max_image_pixels: rigcal_engine::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
+            webhooks: crate::webhooks::WebhookConfig::default(),
         }
     }
 }
 
-/// Start `cfg.workers` workers on the current runtime. They run until `stop` turns
+/// Start `cfg.workers` workers and a webhook dispatcher on the current runtime. They run until `stop` turns
 /// true; then each stops claiming, lets its job reach the next stage boundary (or gives
 /// it back, see [`run_job`]) and ends. Await the handles to let them finish.
 pub fn spawn(
@@ -61,6 +64,8 @@ pub fn spawn(
     // machine without HOSTNAME is labelled "local" rather than refused.
     let host = std::env::var("HOSTNAME").unwrap_or_else(|_| "local".into());
     let wake = Wakeup::start(&store, stop.clone());
+    // One webhook dispatcher per process, also in an API-only replica (`--workers 0`).
+    let dispatcher = crate::webhooks::spawn(store.clone(), cfg.webhooks.clone(), stop.clone());
     (0..cfg.workers)
         .map(|i| {
             let name = format!(
@@ -72,6 +77,7 @@ pub fn spawn(
             let (wake, stop) = (wake.clone(), stop.clone());
             tokio::spawn(async move { worker_loop(name, store, metrics, cfg, wake, stop).await })
         })
+        .chain(std::iter::once(dispatcher))
         .collect()
 }
 

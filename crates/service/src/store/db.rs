@@ -220,6 +220,25 @@ impl Tx {
         })
     }
 
+    pub async fn fetch_all(&mut self, q: Sql) -> sqlx::Result<Vec<Rec>> {
+        Ok(match self.executor() {
+            Exec::Sqlite(e) => q
+                .sqlite()
+                .fetch_all(e)
+                .await?
+                .into_iter()
+                .map(Rec::Sqlite)
+                .collect(),
+            Exec::Postgres(e) => q
+                .postgres()
+                .fetch_all(e)
+                .await?
+                .into_iter()
+                .map(Rec::Postgres)
+                .collect(),
+        })
+    }
+
     pub async fn commit(self) -> sqlx::Result<()> {
         match self {
             Tx::Sqlite(t) => t.commit().await,

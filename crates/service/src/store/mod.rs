@@ -10,6 +10,7 @@ pub mod blob;
 pub mod db;
 pub mod idempotency;
 pub mod vehicle_models;
+pub mod webhooks;
 
 pub use blob::BlobStore;
 use db::{sql, Db, Rec};
