@@ -121,10 +121,15 @@ pub async fn resolve(u: &url::Url, allow_private: bool) -> Result<Vec<SocketAddr
     let bare = host.trim_start_matches('[').trim_end_matches(']');
     let addrs: Vec<SocketAddr> = match bare.parse::<IpAddr>() {
         Ok(ip) => vec![SocketAddr::new(ip, port)],
-        Err(_) => tokio::net::lookup_host((bare, port))
-            .await
-            .map_err(|e| format!("a host that resolves, got {host}: {e}"))?
-            .collect(),
+        // Bounded: a resolver that never answers must not hold the request.
+        Err(_) => tokio::time::timeout(
+            Duration::from_secs(5),
+            tokio::net::lookup_host((bare, port)),
+        )
+        .await
+        .map_err(|_| format!("a host that resolves within 5 s, got {host}"))?
+        .map_err(|e| format!("a host that resolves, got {host}: {e}"))?
+        .collect(),
     };
     if addrs.is_empty() {
         return Err(format!("a host that resolves, got {host}: no address"));
