@@ -91,19 +91,8 @@ async fn fill_with_jobs(dir: &Path, tenant: &str, n: usize) -> i64 {
 /// it: seven mounted within 2 mm / 0.1° of design, one with cam2 turned 2°. Returns the
 /// knocked vehicle and its job.
 async fn fill_fleet(c: &reqwest::Client, s: &Server) -> (String, String) {
-    use rigcal_core::geometry::{so3, Pose};
-    let (_, truth) = rigcal_synth::generate("lebraly-5.1", 1, 0.0).unwrap();
-    let p = truth.ref_from_cam["cam2"];
-    let model = json!({
-        "reference_camera": "cam1",
-        "cameras": [
-            {"id": "cam1", "translation": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
-            {"id": "cam2", "translation": [p.trans.x, p.trans.y, p.trans.z],
-             "quaternion_wxyz": so3::to_quaternion(&p.rot),
-             "tolerance": {"translation_mm": 10.0, "rotation_deg": 0.5}}
-        ],
-        "vehicle_from_ref": {"translation": [1.9, 0.0, 1.4], "rpy_deg": [-90.0, 0.0, -90.0]}
-    });
+    use rigcal_core::geometry::Pose;
+    let model = design_rig_model("lebraly-5.1", [1.9, 0.0, 1.4]);
     let r = c
         .put(s.url("/v1/vehicle-models/rig-e2e"))
         .json(&model)

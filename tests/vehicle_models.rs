@@ -15,18 +15,7 @@ const PRESET: &str = "lebraly-5.1";
 
 /// The preset's design rig as a vehicle model: cam2 within 10 mm / 0.5° of its nominal.
 fn model() -> Value {
-    let (_, truth) = rigcal_synth::generate(PRESET, 1, 0.0).unwrap();
-    let p = truth.ref_from_cam["cam2"];
-    json!({
-        "reference_camera": "cam1",
-        "cameras": [
-            {"id": "cam1", "translation": [0.0, 0.0, 0.0], "rpy_deg": [0.0, 0.0, 0.0]},
-            {"id": "cam2", "translation": [p.trans.x, p.trans.y, p.trans.z],
-             "quaternion_wxyz": so3::to_quaternion(&p.rot),
-             "tolerance": {"translation_mm": 10.0, "rotation_deg": 0.5}}
-        ],
-        "vehicle_from_ref": {"translation": [1.5, 0.0, 1.2], "rpy_deg": [-90.0, 0.0, -90.0]}
-    })
+    design_rig_model(PRESET, [1.5, 0.0, 1.2])
 }
 
 /// A session of vehicle `vin` of model `rig` whose cam2 is mounted `delta` off design.

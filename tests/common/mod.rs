@@ -185,6 +185,37 @@ pub fn synth_session(preset: &str, seed: u64, noise: f64, vehicle: &str) -> Valu
     v
 }
 
+/// The design rig of synthetic preset `preset` as a vehicle model (every camera's true
+/// `ref_from_cam` as its nominal, 10 mm / 0.5° tolerances) with the reference camera at
+/// `vehicle_ref` in the vehicle frame, axes turned from optical (z forward, y down) to a
+/// vehicle's (x forward, z up).
+pub fn design_rig_model(preset: &str, vehicle_ref: [f64; 3]) -> Value {
+    let (_, truth) = rigcal_synth::generate(preset, 1, 0.0).expect("preset");
+    let cameras: Vec<Value> = truth
+        .ref_from_cam
+        .iter()
+        .map(|(id, p)| {
+            let mut c = serde_json::json!({
+                "id": id,
+                "translation": [p.trans.x, p.trans.y, p.trans.z],
+                "quaternion_wxyz": rigcal_core::geometry::so3::to_quaternion(&p.rot),
+            });
+            if *id == truth.reference_camera {
+                c["translation"] = serde_json::json!([0.0, 0.0, 0.0]);
+                c["quaternion_wxyz"] = serde_json::json!([1.0, 0.0, 0.0, 0.0]);
+            } else {
+                c["tolerance"] = serde_json::json!({"translation_mm": 10.0, "rotation_deg": 0.5});
+            }
+            c
+        })
+        .collect();
+    serde_json::json!({
+        "reference_camera": truth.reference_camera,
+        "cameras": cameras,
+        "vehicle_from_ref": {"translation": vehicle_ref, "rpy_deg": [-90.0, 0.0, -90.0]},
+    })
+}
+
 /// Assert a problem+json answer with the given status and type slug; returns the body.
 pub async fn expect_problem(resp: reqwest::Response, status: u16, slug: &str) -> Value {
     let got = resp.status().as_u16();

@@ -50,6 +50,21 @@ pub struct ExtrinsicValue {
 }
 
 impl ExtrinsicValue {
+    /// Camera `camera` at `ref_from_cam`, every field from the one pose (the inverse of
+    /// [`ExtrinsicValue::pose`]).
+    pub fn of(camera: &str, ref_from_cam: &crate::geometry::Pose) -> Self {
+        use crate::geometry::so3;
+        let (r, p, y) = so3::to_rpy(&ref_from_cam.rot);
+        let t = ref_from_cam.trans;
+        ExtrinsicValue {
+            camera: camera.to_string(),
+            ref_from_cam: ref_from_cam.matrix(),
+            translation: [t.x, t.y, t.z],
+            quaternion_wxyz: so3::to_quaternion(&ref_from_cam.rot),
+            rpy_deg: [r.to_degrees(), p.to_degrees(), y.to_degrees()],
+        }
+    }
+
     /// `ref_from_cam` as a pose (from the 4×4 matrix, the field every format is built on).
     pub fn pose(&self) -> crate::geometry::Pose {
         let m = self.ref_from_cam;

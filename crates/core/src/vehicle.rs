@@ -431,24 +431,13 @@ mod tests {
         VehicleModel::parse(&serde_json::to_vec(v).unwrap())
     }
 
-    fn extrinsic(camera: &str, p: &Pose) -> ExtrinsicValue {
-        let (r, pi, y) = so3::to_rpy(&p.rot);
-        ExtrinsicValue {
-            camera: camera.into(),
-            ref_from_cam: p.matrix(),
-            translation: [p.trans.x, p.trans.y, p.trans.z],
-            quaternion_wxyz: so3::to_quaternion(&p.rot),
-            rpy_deg: [r.to_degrees(), pi.to_degrees(), y.to_degrees()],
-        }
-    }
-
     #[test]
     fn the_nominal_rig_deviates_by_nothing_and_passes() {
         let m = parse(&model()).unwrap();
         assert_eq!(m.fleet_outlier_z, 5.0);
         let ex: Vec<_> = ["front", "rear", "left"]
             .iter()
-            .map(|c| extrinsic(c, &m.nominal(c).unwrap()))
+            .map(|c| ExtrinsicValue::of(c, &m.nominal(c).unwrap()))
             .collect();
         let d = m.deviations(&ex);
         assert_eq!(d.len(), 2);
@@ -490,9 +479,9 @@ mod tests {
             nl.trans,
         );
         let dl = m.deviations(&[
-            extrinsic("front", &Pose::identity()),
-            extrinsic("rear", &nom),
-            extrinsic("left", &off),
+            ExtrinsicValue::of("front", &Pose::identity()),
+            ExtrinsicValue::of("rear", &nom),
+            ExtrinsicValue::of("left", &off),
         ]);
         assert!(dl[0].within_tolerance);
         assert!(!dl[1].within_tolerance);
@@ -507,7 +496,7 @@ mod tests {
     #[test]
     fn a_camera_missing_from_the_result_is_outside_its_tolerance() {
         let m = parse(&model()).unwrap();
-        let d = m.deviations(&[extrinsic("front", &Pose::identity())]);
+        let d = m.deviations(&[ExtrinsicValue::of("front", &Pose::identity())]);
         assert!(d
             .iter()
             .all(|d| !d.within_tolerance && d.translation_mm.is_none()));

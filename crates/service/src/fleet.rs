@@ -300,17 +300,6 @@ mod tests {
         .unwrap()
     }
 
-    fn value(camera: &str, p: &Pose) -> ExtrinsicValue {
-        let (r, pi, y) = so3::to_rpy(&p.rot);
-        ExtrinsicValue {
-            camera: camera.into(),
-            ref_from_cam: p.matrix(),
-            translation: [p.trans.x, p.trans.y, p.trans.z],
-            quaternion_wxyz: so3::to_quaternion(&p.rot),
-            rpy_deg: [r.to_degrees(), pi.to_degrees(), y.to_degrees()],
-        }
-    }
-
     /// 210 vehicles mounted with 1.5 mm / 0.05° of normal variation per axis, five of
     /// them with one camera planted 2-4 % of a degree or a few mm beyond that (≥ 8
     /// spreads), 40 calibrated twice: exactly the five are flagged.
@@ -358,7 +347,7 @@ mod tests {
         let mut jobs = Vec::new();
         for v in 0..210usize {
             for visit in 0..(1 + usize::from(v % 5 == 0)) {
-                let mut ex = vec![value("front", &Pose::identity())];
+                let mut ex = vec![ExtrinsicValue::of("front", &Pose::identity())];
                 for cam in ["rear", "left"] {
                     let nom = m.nominal(cam).unwrap();
                     let mut dt = Vector3::new(
@@ -378,7 +367,7 @@ mod tests {
                             dr += r;
                         }
                     }
-                    ex.push(value(
+                    ex.push(ExtrinsicValue::of(
                         cam,
                         &Pose::new(so3::exp(&dr) * nom.rot, nom.trans + dt),
                     ));
@@ -439,7 +428,7 @@ mod tests {
         let m = model();
         let ex: Vec<_> = ["front", "rear", "left"]
             .iter()
-            .map(|c| value(c, &m.nominal(c).unwrap()))
+            .map(|c| ExtrinsicValue::of(c, &m.nominal(c).unwrap()))
             .collect();
         let jobs: Vec<FleetJob> = (0..20)
             .map(|v| FleetJob {

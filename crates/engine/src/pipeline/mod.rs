@@ -93,17 +93,6 @@ impl CalibOptions {
     }
 }
 
-pub fn extrinsic_value(camera: &str, p: &Pose) -> ExtrinsicValue {
-    let (r, pi, y) = so3::to_rpy(&p.rot);
-    ExtrinsicValue {
-        camera: camera.to_string(),
-        ref_from_cam: p.matrix(),
-        translation: [p.trans.x, p.trans.y, p.trans.z],
-        quaternion_wxyz: so3::to_quaternion(&p.rot),
-        rpy_deg: [r.to_degrees(), pi.to_degrees(), y.to_degrees()],
-    }
-}
-
 /// The rig poses of the bundle adjustment relative to the first one (frame ids, not
 /// positions in the session).
 fn rig_trajectory(session: &Session, ba: &rigcal_calib::rig_ba::RigBaOutput) -> Vec<RigPose> {
@@ -433,7 +422,7 @@ pub fn calibrate_with(
     let initialisation: Vec<ExtrinsicValue> = ids
         .iter()
         .zip(&init.ref_from_cam)
-        .map(|(id, p)| extrinsic_value(id, p))
+        .map(|(id, p)| ExtrinsicValue::of(id, p))
         .collect();
 
     enter(progress, "rig_bundle_adjustment")?;
@@ -451,7 +440,7 @@ pub fn calibrate_with(
     let mut extrinsics = Vec::new();
     let mut per_camera = Vec::new();
     for (c, id) in ids.iter().enumerate() {
-        let value = extrinsic_value(id, &ba.problem.rig_from_cam[c]);
+        let value = ExtrinsicValue::of(id, &ba.problem.rig_from_cam[c]);
         let slot = obs
             .as_ref()
             .and_then(|o| o.cams.iter().position(|x| *x == c));

@@ -2,7 +2,7 @@
 //! camera–target poses and pair transforms → chain and ring-closure optimisation →
 //! extrinsics with their σ, chainwise beside global.
 
-use super::{enter, extrinsic_value, failed, reason, CalibOptions, Cancelled, Progress};
+use super::{enter, failed, reason, CalibOptions, Cancelled, Progress};
 use rigcal_calib::vanishing::{self, pose::Init, VanishingOptions};
 use rigcal_core::result::*;
 use rigcal_core::session::Session;
@@ -87,7 +87,7 @@ pub(super) fn calibrate(
         let (vst, vsr) = sigmas(&c.view.covariance);
         let is_ref = c.camera == session.reference;
         extrinsics.push(Extrinsic {
-            value: extrinsic_value(id, &c.global.pose),
+            value: ExtrinsicValue::of(id, &c.global.pose),
             sigma_translation_m: st.map(Some),
             sigma_rotation_deg: sr.map(Some),
             observable_dof: ObservableDof {
@@ -97,7 +97,7 @@ pub(super) fn calibrate(
             covariance: (!is_ref)
                 .then(|| std::array::from_fn(|a| std::array::from_fn(|b| c.global.cov[(a, b)]))),
         });
-        initialisation.push(extrinsic_value(id, &c.chainwise.pose));
+        initialisation.push(ExtrinsicValue::of(id, &c.chainwise.pose));
         let res: Vec<f64> = c.view.residuals.iter().map(|r| r.abs()).collect();
         all.extend(&res);
         per_camera.push(CameraStats {
@@ -109,7 +109,7 @@ pub(super) fn calibrate(
             target: tname(c.target),
             chain: c.path.iter().map(|t| tname(*t)).collect(),
             chain_transforms: c.path.len().saturating_sub(1),
-            chainwise: extrinsic_value(id, &c.chainwise.pose),
+            chainwise: ExtrinsicValue::of(id, &c.chainwise.pose),
             chainwise_sigma_translation_m: cst,
             chainwise_sigma_rotation_deg: csr,
             target_pose_sigma_translation_m: vst,
