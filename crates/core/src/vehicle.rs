@@ -420,7 +420,7 @@ mod tests {
                 {"id": "rear", "translation": [0.1, -0.2, -3.0], "rpy_deg": [0.0, 180.0, 0.0],
                  "tolerance": {"translation_mm": 5.0, "rotation_deg": [0.5, 0.5, 1.0]}},
                 {"id": "left", "translation": [-0.8, 0.0, -1.5],
-                 "quaternion_wxyz": [0.7071067811865476, 0.0, -0.7071067811865476, 0.0],
+                 "quaternion_wxyz": [std::f64::consts::FRAC_1_SQRT_2, 0.0, -std::f64::consts::FRAC_1_SQRT_2, 0.0],
                  "tolerance": {"translation_mm": [2.0, 2.0, 2.0], "rotation_deg": 0.3}}
             ],
             "vehicle_from_ref": {"translation": [2.0, 0.0, 1.2], "rpy_deg": [-90.0, 0.0, -90.0]}
@@ -505,7 +505,8 @@ mod tests {
 
     #[test]
     fn every_bad_field_is_named() {
-        let cases: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>)> = vec![
+        type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+        let cases: Vec<(&str, Edit)> = vec![
             (
                 "reference_camera",
                 Box::new(|v| v["reference_camera"] = json!("side")),

@@ -8,7 +8,7 @@ use rigcal_calib::motion::MotionClass;
 use rigcal_calib::rig_ba::{refine, RigBaOptions};
 use rigcal_calib::trajectory;
 use rigcal_calib::verdict::{motion_findings, planar_recommendation};
-use rigcal_core::geometry::{so3, Pose};
+use rigcal_core::geometry::so3;
 use rigcal_core::result::*;
 use rigcal_core::session::{undetected_images, Method, Session};
 use rigcal_core::verdict::{status_of, ReasonCode};
