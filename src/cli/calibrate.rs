@@ -120,7 +120,10 @@ pub fn run(a: Args) -> Result<i32> {
         m.fits(&session.manifest.reference_camera, &ids)
             .map_err(|e| anyhow!("session against --vehicle-model: {e}"))?;
         let values: Vec<_> = doc.extrinsics.iter().map(|e| e.value.clone()).collect();
-        for d in m.deviations(&values) {
+        for d in m
+            .deviations(&values)
+            .map_err(|e| anyhow!("--vehicle-model: {e}"))?
+        {
             match (d.translation_norm_mm, d.rotation_angle_deg) {
                 (Some(t), Some(r)) => eprintln!(
                     "{}: {t:.2} mm, {r:.3}° from nominal: {}",

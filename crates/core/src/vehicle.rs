@@ -339,29 +339,37 @@ impl VehicleModel {
     }
 
     /// Every non-reference camera's deviation from its nominal, in the model's order;
-    /// a camera the result lacks is reported missing (outside its tolerance).
-    pub fn deviations(&self, extrinsics: &[ExtrinsicValue]) -> Vec<Deviation> {
-        self.cameras
+    /// a camera the result lacks is reported missing (outside its tolerance). `Err` only
+    /// for a model that never passed [`VehicleModel::check`] (a bug or a corrupt store):
+    /// named, never skipped.
+    pub fn deviations(&self, extrinsics: &[ExtrinsicValue]) -> Result<Vec<Deviation>, String> {
+        let mut out = Vec::new();
+        for c in self
+            .cameras
             .iter()
             .filter(|c| c.id != self.reference_camera)
-            .filter_map(|c| {
-                let nominal = c.pose_spec().pose("").ok()?;
-                let tol = c.tolerance?;
-                Some(match extrinsics.iter().find(|e| e.camera == c.id) {
-                    Some(e) => Deviation::of(&c.id, &nominal, &e.pose(), tol),
-                    None => Deviation {
-                        camera: c.id.clone(),
-                        translation_mm: None,
-                        rotation_deg: None,
-                        translation_norm_mm: None,
-                        rotation_angle_deg: None,
-                        tolerance: tol,
-                        within_tolerance: false,
-                        exceeded: vec![format!("camera {} has no calibrated extrinsic", c.id)],
-                    },
-                })
-            })
-            .collect()
+        {
+            let internal = |why: String| format!("internal: vehicle model camera {}: {why}", c.id);
+            let nominal = c
+                .pose_spec()
+                .pose("")
+                .map_err(|e| internal(e.to_string()))?;
+            let tol = c.tolerance.ok_or_else(|| internal("no tolerance".into()))?;
+            out.push(match extrinsics.iter().find(|e| e.camera == c.id) {
+                Some(e) => Deviation::of(&c.id, &nominal, &e.pose(), tol),
+                None => Deviation {
+                    camera: c.id.clone(),
+                    translation_mm: None,
+                    rotation_deg: None,
+                    translation_norm_mm: None,
+                    rotation_angle_deg: None,
+                    tolerance: tol,
+                    within_tolerance: false,
+                    exceeded: vec![format!("camera {} has no calibrated extrinsic", c.id)],
+                },
+            });
+        }
+        Ok(out)
     }
 }
 
@@ -439,7 +447,7 @@ mod tests {
             .iter()
             .map(|c| ExtrinsicValue::of(c, &m.nominal(c).unwrap()))
             .collect();
-        let d = m.deviations(&ex);
+        let d = m.deviations(&ex).unwrap();
         assert_eq!(d.len(), 2);
         for d in &d {
             assert!(d.within_tolerance, "{d:?}");
@@ -478,11 +486,13 @@ mod tests {
             so3::exp(&Vector3::new(0.0, 0.0, 2f64.to_radians())) * nl.rot,
             nl.trans,
         );
-        let dl = m.deviations(&[
-            ExtrinsicValue::of("front", &Pose::identity()),
-            ExtrinsicValue::of("rear", &nom),
-            ExtrinsicValue::of("left", &off),
-        ]);
+        let dl = m
+            .deviations(&[
+                ExtrinsicValue::of("front", &Pose::identity()),
+                ExtrinsicValue::of("rear", &nom),
+                ExtrinsicValue::of("left", &off),
+            ])
+            .unwrap();
         assert!(dl[0].within_tolerance);
         assert!(!dl[1].within_tolerance);
         assert!((dl[1].rotation_angle_deg.unwrap() - 2.0).abs() < 1e-9);
@@ -496,11 +506,21 @@ mod tests {
     #[test]
     fn a_camera_missing_from_the_result_is_outside_its_tolerance() {
         let m = parse(&model()).unwrap();
-        let d = m.deviations(&[ExtrinsicValue::of("front", &Pose::identity())]);
+        let d = m
+            .deviations(&[ExtrinsicValue::of("front", &Pose::identity())])
+            .unwrap();
         assert!(d
             .iter()
             .all(|d| !d.within_tolerance && d.translation_mm.is_none()));
         assert!(d[0].exceeded[0].contains("no calibrated extrinsic"));
+    }
+
+    #[test]
+    fn an_unchecked_model_is_an_internal_error_not_a_skipped_camera() {
+        let mut m = parse(&model()).unwrap();
+        m.cameras[2].tolerance = None;
+        let e = m.deviations(&[]).unwrap_err();
+        assert!(e.starts_with("internal: vehicle model camera left"), "{e}");
     }
 
     #[test]

@@ -121,15 +121,15 @@ fn median(xs: &mut [f64]) -> f64 {
 /// excluded); `None` where the camera has no extrinsic.
 type Row = Vec<Option<[f64; 6]>>;
 
-fn row(model: &VehicleModel, extrinsics: &[ExtrinsicValue]) -> Row {
-    model
-        .deviations(extrinsics)
+fn row(model: &VehicleModel, extrinsics: &[ExtrinsicValue]) -> Result<Row, String> {
+    Ok(model
+        .deviations(extrinsics)?
         .iter()
         .map(|d| match (d.translation_mm, d.rotation_deg) {
             (Some(t), Some(r)) => Some([t[0], t[1], t[2], r[0], r[1], r[2]]),
             _ => None,
         })
-        .collect()
+        .collect())
 }
 
 /// The statistics of `jobs` (accepted calibrations of `model`'s vehicles, oldest first).
@@ -154,7 +154,7 @@ pub fn stats(
                 j.job_id
             )
         })?;
-        rows.push(row(model, &ex));
+        rows.push(row(model, &ex)?);
     }
     // Latest per vehicle (jobs are oldest first, so the last one wins).
     let mut latest: BTreeMap<&str, usize> = BTreeMap::new();

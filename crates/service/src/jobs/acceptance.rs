@@ -104,16 +104,20 @@ pub fn judge(job: &JobRow, tenant: &Tenant, model: Option<&VehicleModel>) -> Acc
             (None, _) => reasons.push(format!("vehicle model {name} is not defined")),
             (Some(_), Err(why)) => reasons.push(why),
             (Some(_), Ok(ex)) if ex.is_empty() => {}
-            (Some(m), Ok(ex)) => {
-                report.cameras = m.deviations(&ex);
-                report.within_tolerance = Some(report.cameras.iter().all(|d| d.within_tolerance));
-                reasons.extend(
-                    report
-                        .cameras
-                        .iter()
-                        .flat_map(|d| d.exceeded.iter().cloned()),
-                );
-            }
+            (Some(m), Ok(ex)) => match m.deviations(&ex) {
+                Err(why) => reasons.push(why),
+                Ok(cameras) => {
+                    report.cameras = cameras;
+                    report.within_tolerance =
+                        Some(report.cameras.iter().all(|d| d.within_tolerance));
+                    reasons.extend(
+                        report
+                            .cameras
+                            .iter()
+                            .flat_map(|d| d.exceeded.iter().cloned()),
+                    );
+                }
+            },
         }
         report
     });
