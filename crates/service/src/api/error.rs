@@ -36,6 +36,22 @@ pub struct ApiError {
 }
 
 impl ApiError {
+    /// A route's query string parsed into `T` (`deny_unknown_fields`), or 400
+    /// `invalid-query` saying what was wrong and which parameters the route knows.
+    pub fn parse_query<T: serde::de::DeserializeOwned>(
+        raw: Option<&str>,
+        known: &str,
+    ) -> Result<T, ApiError> {
+        serde_urlencoded::from_str(raw.unwrap_or("")).map_err(|e| {
+            ApiError::new(
+                StatusCode::BAD_REQUEST,
+                "invalid-query",
+                format!("query: {e}; known parameters: {known}"),
+            )
+            .field("query")
+        })
+    }
+
     pub fn new(status: StatusCode, slug: &'static str, detail: impl Into<String>) -> Self {
         Self {
             status,

@@ -120,15 +120,7 @@ pub async fn fleet(
     Path(model): Path<String>,
     axum::extract::RawQuery(raw): axum::extract::RawQuery,
 ) -> Result<Response, ApiError> {
-    let q: FleetFigureQuery =
-        serde_urlencoded::from_str(raw.as_deref().unwrap_or("")).map_err(|e| {
-            ApiError::new(
-                StatusCode::BAD_REQUEST,
-                "invalid-query",
-                format!("query: {e}; expected camera=ID"),
-            )
-            .field("query")
-        })?;
+    let q: FleetFigureQuery = ApiError::parse_query(raw.as_deref(), "camera")?;
     let (row, s) = super::vehicle_models::fleet_of(&state, &tenant.id, &model, None, None).await?;
     let Some(c) = s.cameras.iter().position(|c| c.camera == q.camera) else {
         let ids: Vec<&str> = s.cameras.iter().map(|c| c.camera.as_str()).collect();

@@ -271,10 +271,10 @@ struct ListQuery {
 }
 
 fn parse_filter(raw: Option<&str>) -> Result<JobFilter, ApiError> {
-    let q: ListQuery = serde_urlencoded::from_str(raw.unwrap_or("")).map_err(|e| {
-        ApiError::new(StatusCode::BAD_REQUEST, "invalid-query", format!("query: {e}; known parameters: status, vehicle_id, method, created_after, created_before, limit, offset"))
-            .field("query")
-    })?;
+    let q: ListQuery = ApiError::parse_query(
+        raw,
+        "status, vehicle_id, method, created_after, created_before, limit, offset",
+    )?;
     let bad = |field: &str, expected: String| ApiError::invalid(InputError::new(field, expected));
     let status = match &q.status {
         None => None,
@@ -546,14 +546,7 @@ pub async fn result(
     Path(id): Path<String>,
     RawQuery(raw): RawQuery,
 ) -> Result<Response, ApiError> {
-    let q: ResultQuery = serde_urlencoded::from_str(raw.as_deref().unwrap_or("")).map_err(|e| {
-        ApiError::new(
-            StatusCode::BAD_REQUEST,
-            "invalid-query",
-            format!("query: {e}; known parameters: format, camera, frame"),
-        )
-        .field("query")
-    })?;
+    let q: ResultQuery = ApiError::parse_query(raw.as_deref(), "format, camera, frame")?;
     let format: Format = match q.format.as_deref() {
         None => Format::Json,
         Some(f) => f.parse().map_err(|_| {

@@ -157,14 +157,7 @@ pub async fn fleet(
     Path(model): Path<String>,
     RawQuery(raw): RawQuery,
 ) -> Result<Json<Value>, ApiError> {
-    let q: FleetQuery = serde_urlencoded::from_str(raw.as_deref().unwrap_or("")).map_err(|e| {
-        ApiError::new(
-            StatusCode::BAD_REQUEST,
-            "invalid-query",
-            format!("query: {e}; known parameters: z, bucket"),
-        )
-        .field("query")
-    })?;
+    let q: FleetQuery = ApiError::parse_query(raw.as_deref(), "z, bucket")?;
     let (_, s) = fleet_of(
         &state,
         &tenant.id,

@@ -144,15 +144,7 @@ pub async fn deliveries(
     Path(id): Path<String>,
     RawQuery(raw): RawQuery,
 ) -> Result<Json<Value>, ApiError> {
-    let q: DeliveriesQuery =
-        serde_urlencoded::from_str(raw.as_deref().unwrap_or("")).map_err(|e| {
-            ApiError::new(
-                StatusCode::BAD_REQUEST,
-                "invalid-query",
-                format!("query: {e}; known parameters: limit"),
-            )
-            .field("query")
-        })?;
+    let q: DeliveriesQuery = ApiError::parse_query(raw.as_deref(), "limit")?;
     let limit = match q.limit.as_deref() {
         None => 50,
         Some(s) => match s.parse::<i64>() {
