@@ -649,3 +649,76 @@ fn threads_share_the_work_of_one_image_without_changing_it() {
     assert_eq!(one, run(2));
     assert_eq!(one, run(7));
 }
+
+/// Detections kept from an earlier pass (as the service keeps those made at upload) are
+/// what the detection stage uses: the same observations as detecting afresh, and not
+/// one image read again.
+#[test]
+fn kept_detections_stand_in_for_the_images() {
+    use rigcal_core::session::{image_slots, parse_session, ImageSlot};
+    use rigcal_engine::pipeline::detection::{
+        detect_image, detect_session, DirSource, ImageDetection, ImageSource,
+    };
+    use rigcal_engine::pipeline::Silent;
+    use std::collections::HashMap;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+
+    struct Kept {
+        by_slot: HashMap<(String, i64), ImageDetection>,
+        reads: AtomicUsize,
+    }
+    impl ImageSource for Kept {
+        fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+            self.reads.fetch_add(1, Ordering::SeqCst);
+            Err(format!("{} is not here", slot.path))
+        }
+        fn detected(&self, slot: &ImageSlot) -> Option<ImageDetection> {
+            self.by_slot
+                .get(&(slot.camera.clone(), slot.frame))
+                .cloned()
+        }
+    }
+
+    let dir = tempfile::tempdir().unwrap();
+    let (path, _) = image_session(dir.path());
+    let session = parse_session(&std::fs::read(&path).unwrap()).unwrap();
+    let files = DirSource(dir.path().to_path_buf());
+    let (fresh, _) = detect_session(&session, &files, &Silent).unwrap();
+    // Through JSON, as a store keeps them.
+    let by_slot = image_slots(&session)
+        .iter()
+        .map(|s| {
+            let d = detect_image(&session, s, &files);
+            let text = serde_json::to_string(&d).unwrap();
+            let kept: ImageDetection = serde_json::from_str(&text).unwrap();
+            ((s.camera.clone(), s.frame), kept)
+        })
+        .collect();
+    let kept = Kept {
+        by_slot,
+        reads: AtomicUsize::new(0),
+    };
+    let (reused, report) = detect_session(&session, &kept, &Silent).unwrap();
+    assert_eq!(kept.reads.load(Ordering::SeqCst), 0);
+    let report = report.unwrap();
+    assert_eq!((report.images_total, report.images_skipped), (16, 0));
+    // The same points, equal up to the text round trip of their coordinates.
+    let mut n = 0;
+    for (a, b) in reused.manifest.frames.iter().zip(&fresh.manifest.frames) {
+        assert_eq!(
+            a.observations.keys().collect::<Vec<_>>(),
+            b.observations.keys().collect::<Vec<_>>()
+        );
+        for (cam, oa) in &a.observations {
+            let ob = &b.observations[cam];
+            assert_eq!(oa.len(), ob.len(), "camera {cam}");
+            for (x, y) in oa.iter().zip(ob) {
+                assert_eq!(x.point, y.point);
+                assert!((x.u - y.u).abs() < 1e-9 && (x.v - y.v).abs() < 1e-9);
+                n += 1;
+            }
+        }
+    }
+    assert_eq!(n, report.points_total);
+    assert!(report.points_total >= 16 * 100, "{report:?}");
+}

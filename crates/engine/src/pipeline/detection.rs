@@ -15,10 +15,15 @@ use rigcal_detect::linegrid::detect_line_grids;
 use rigcal_detect::linetarget::detect_line_targets;
 use rigcal_detect::refine::Lens;
 use rigcal_detect::{detect_tags, gray::Gray, DetectOptions};
+use serde::{Deserialize, Serialize};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::sync::Mutex;
 use std::time::Instant;
+
+/// The detector a stored [`ImageDetection`] came from: outcomes of another build are
+/// never reused, since its corners may differ.
+pub const DETECTOR_VERSION: &str = concat!("rigcal-detect-", env!("CARGO_PKG_VERSION"));
 
 /// Default pixel budget of one image (the service's `--max-image-pixels`).
 pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 50_000_000;
@@ -30,6 +35,15 @@ pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 50_000_000;
 /// but do not decode are the capture's fault: that image is skipped with its reason.)
 pub trait ImageSource: Sync {
     fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String>;
+
+    /// What [`detect_image`] already gave for this slot's bytes, when the source kept it
+    /// (the service detects images as they are uploaded). The stage then uses it instead
+    /// of decoding the image again. A source must only offer an outcome of these exact
+    /// bytes and of this build's detector ([`DETECTOR_VERSION`]); anything else is
+    /// detected afresh.
+    fn detected(&self, _slot: &ImageSlot) -> Option<ImageDetection> {
+        None
+    }
 
     fn max_pixels(&self) -> u64 {
         DEFAULT_MAX_IMAGE_PIXELS
@@ -135,7 +149,7 @@ pub fn detect_session(
     let start = Instant::now();
     let next = AtomicUsize::new(0);
     let stop = AtomicBool::new(false);
-    let results: Mutex<Vec<Option<SlotOutcome>>> = Mutex::new(vec![None; pending.len()]);
+    let results: Mutex<Vec<Option<ImageDetection>>> = Mutex::new(vec![None; pending.len()]);
     let threads = std::thread::available_parallelism()
         .map_or(1, |n| n.get())
         .min(pending.len());
@@ -154,7 +168,10 @@ pub fn detect_session(
                 let Some((_, slot)) = pending.get(i) else {
                     break;
                 };
-                let out = detect_slot(session, slot, source);
+                let out = match source.detected(slot) {
+                    Some(kept) => kept,
+                    None => detect_image(session, slot, source),
+                };
                 if let Ok(mut r) = results.lock() {
                     r[i] = Some(out);
                 }
@@ -182,7 +199,9 @@ pub fn detect_session(
     let mut manifest = session.manifest.clone();
     let mut images = Vec::new();
     for ((fi, slot), r) in pending.iter().zip(results) {
-        let Some((report, found)) = r else { continue };
+        let Some(ImageDetection { report, found }) = r else {
+            continue;
+        };
         // Detected (or skipped with a reason): no longer an image awaiting detection.
         match fi {
             Some(fi) => {
@@ -250,16 +269,34 @@ pub fn decode_gray(
 }
 
 /// What one image gave: tag corners (motion method) or feature-line points (vanishing).
-#[derive(Clone)]
-enum Found {
+#[derive(Clone, Debug, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Found {
     Points(Vec<ObservationSpec>),
     Lines(Vec<LineSpec>),
 }
 
-/// What one image gave: its report line and its detections.
-type SlotOutcome = (ImageReport, Found);
+/// What one image gave: its report line and its detections. Serialisable, so a store
+/// can keep it beside the image and a later job reuse it (see [`ImageSource::detected`]).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct ImageDetection {
+    pub report: ImageReport,
+    pub found: Found,
+}
 
-fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) -> SlotOutcome {
+impl ImageDetection {
+    fn of(report: ImageReport, found: Found) -> Self {
+        ImageDetection { report, found }
+    }
+}
+
+/// Detect one image of the session (read through `source`): the unit of work of the
+/// detection stage, and of detection at upload.
+pub fn detect_image(
+    session: &Session,
+    slot: &ImageSlot,
+    source: &dyn ImageSource,
+) -> ImageDetection {
     let mut report = ImageReport {
         field: slot.field.clone(),
         camera: slot.camera.clone(),
@@ -285,7 +322,7 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
             } else {
                 Found::Points(vec![])
             };
-            return (report, none);
+            return ImageDetection::of(report, none);
         }
     };
     if session.manifest.method == Method::Vanishing {
@@ -297,11 +334,11 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
             Ok((lines, targets)) => {
                 report.tags = targets;
                 report.points = lines.iter().map(|l| l.points.len()).sum();
-                (report, Found::Lines(lines))
+                ImageDetection::of(report, Found::Lines(lines))
             }
             Err(e) => {
                 report.error = Some(e);
-                (report, Found::Lines(vec![]))
+                ImageDetection::of(report, Found::Lines(vec![]))
             }
         };
     }
@@ -329,11 +366,11 @@ fn detect_slot(session: &Session, slot: &ImageSlot, source: &dyn ImageSource) ->
                     v: p.v,
                 })
                 .collect();
-            (report, Found::Points(obs))
+            ImageDetection::of(report, Found::Points(obs))
         }
         Err(e) => {
             report.error = Some(e);
-            (report, Found::Points(vec![]))
+            ImageDetection::of(report, Found::Points(vec![]))
         }
     }
 }
