@@ -59,7 +59,7 @@ source scripts/backends.sh
 trap stop_backends EXIT
 start_backends
 cargo test --release --test service --test queue --test crash --test fleet --test client \
-  --test dashboard_api --test idempotency --test bundle --test blobs --test vehicle_models --test webhooks "$@"
+  --test dashboard_api --test idempotency --test bundle --test blobs --test vehicle_models --test webhooks --test capture_feedback "$@"
 stop_backends
 trap - EXIT
 # The HTTP contract: openapi.yaml against the running server (built by the line above).

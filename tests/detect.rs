@@ -702,6 +702,7 @@ fn kept_detections_stand_in_for_the_images() {
     assert_eq!(kept.reads.load(Ordering::SeqCst), 0);
     let report = report.unwrap();
     assert_eq!((report.images_total, report.images_skipped), (16, 0));
+    assert_eq!(report.images_reused, 16);
     // The same points, equal up to the text round trip of their coordinates.
     let mut n = 0;
     for (a, b) in reused.manifest.frames.iter().zip(&fresh.manifest.frames) {

@@ -90,12 +90,21 @@ try {
   assert.equal(queuedBefore, 3, "the three prepared jobs are queued");
   await page.evaluate(() => { window.__noReload = "still-here"; });
 
-  // ---- 2. Upload a session archive through the form; the job starts. ----
+  // ---- 2. Upload a session archive through the form; its capture check shows before
+  // any job; the job starts from there. ----
   await page.getByRole("link", { name: "Upload" }).click();
   await page.getByLabel("Session archive").waitFor();
   await accessible(page, "upload form");
   await page.getByLabel("Session archive").setInputFiles(cfg.upload);
-  await page.getByRole("button", { name: "Upload and start job" }).click();
+  await page.getByRole("button", { name: "Upload", exact: true }).click();
+  await page.locator('#capture-check[data-complete="true"]').waitFor({ timeout: 30000 });
+  const sessionId = (await page.locator("#upload-status").textContent()).match(/Session ([0-9a-f-]{36})/)[1];
+  const apiCheck = await apiJson(cfg.base, cfg.key, `/v1/sessions/${sessionId}/check`);
+  assert.equal(await page.locator("#check-verdict").getAttribute("data-verdict"), apiCheck.verdict, "the page shows the API's capture check");
+  assert.equal(await page.locator("#check-reasons li").count(), apiCheck.reasons.length);
+  await accessible(page, "upload page with its capture check");
+  await shot(page, "02-capture-check");
+  await page.getByRole("button", { name: "Start calibration job" }).click();
   await page.waitForFunction(() => /^#\/jobs\/[0-9a-f-]{36}$/.test(location.hash), null, { timeout: 30000 });
   const jobId = (await page.evaluate(() => location.hash)).split("/")[2];
   log(`uploaded; job ${jobId}`);

@@ -403,7 +403,25 @@ pub struct DetectionReport {
     pub images_skipped: usize,
     pub points_total: usize,
     pub seconds: f64,
+    /// Of `images_total`, those whose detections were made when the image was uploaded
+    /// (same bytes, same detector) and reused rather than detected again.
+    #[serde(default)]
+    pub images_reused: usize,
     pub images: Vec<ImageReport>,
+}
+
+impl DetectionReport {
+    /// The report of these images' outcomes (no time measured, none reused).
+    pub fn of(images: Vec<ImageReport>) -> DetectionReport {
+        DetectionReport {
+            images_total: images.len(),
+            images_skipped: images.iter().filter(|r| r.error.is_some()).count(),
+            points_total: images.iter().map(|r| r.points).sum(),
+            seconds: 0.0,
+            images_reused: 0,
+            images,
+        }
+    }
 }
 
 impl ResultDocument {

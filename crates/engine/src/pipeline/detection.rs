@@ -118,6 +118,32 @@ impl From<Cancelled> for DetectionFailure {
     }
 }
 
+/// The image slots of a session that detection would fill: those whose frame (or ring
+/// entry) has no detections yet, for targets this build can detect (none otherwise).
+/// One definition for the detection stage and for detection at upload.
+pub fn awaiting_detection(session: &Session) -> Vec<ImageSlot> {
+    if !detectable(session) {
+        return vec![];
+    }
+    image_slots(session)
+        .into_iter()
+        .filter(|s| match s.frame_pos {
+            Some(fi) => {
+                let f = &session.manifest.frames[fi];
+                !(f.observations.get(&s.camera).is_some_and(|o| !o.is_empty())
+                    || f.lines.get(&s.camera).is_some_and(|l| !l.is_empty()))
+            }
+            // A ring image (vanishing method): its slot's frame is the ring index.
+            None => session
+                .manifest
+                .ring
+                .iter()
+                .find(|r| r.index == s.frame)
+                .is_some_and(|r| r.lines.is_empty()),
+        })
+        .collect()
+}
+
 /// Detect what can be detected. Returns the session with observations filled in (or
 /// the original, when there was nothing to do) and the report (`None` when the session
 /// named no image needing detection).
@@ -126,29 +152,15 @@ pub fn detect_session(
     source: &dyn ImageSource,
     progress: &dyn Progress,
 ) -> Result<(Session, Option<DetectionReport>), DetectionFailure> {
-    let pending: Vec<(Option<usize>, ImageSlot)> = image_slots(session)
-        .into_iter()
-        .filter_map(|s| match s.frame_pos {
-            Some(fi) => {
-                let f = &session.manifest.frames[fi];
-                let done = f.observations.get(&s.camera).is_some_and(|o| !o.is_empty())
-                    || f.lines.get(&s.camera).is_some_and(|l| !l.is_empty());
-                (!done).then_some((Some(fi), s))
-            }
-            // A ring image (vanishing method): its slot's frame is the ring index.
-            None => {
-                let r = session.manifest.ring.iter().find(|r| r.index == s.frame)?;
-                r.lines.is_empty().then_some((None, s))
-            }
-        })
-        .collect();
-    if pending.is_empty() || !detectable(session) {
+    let pending = awaiting_detection(session);
+    if pending.is_empty() {
         return Ok((session.clone(), None));
     }
     enter(progress, "detection")?;
     let start = Instant::now();
     let next = AtomicUsize::new(0);
     let stop = AtomicBool::new(false);
+    let reused = AtomicUsize::new(0);
     let results: Mutex<Vec<Option<ImageDetection>>> = Mutex::new(vec![None; pending.len()]);
     let threads = std::thread::available_parallelism()
         .map_or(1, |n| n.get())
@@ -159,17 +171,21 @@ pub fn detect_session(
     std::thread::scope(|s| {
         for _ in 0..threads {
             let tx = tx.clone();
-            let (next, stop, results, pending) = (&next, &stop, &results, &pending);
+            let (next, stop, results, pending, reused) =
+                (&next, &stop, &results, &pending, &reused);
             s.spawn(move || loop {
                 if stop.load(Ordering::SeqCst) {
                     break;
                 }
                 let i = next.fetch_add(1, Ordering::SeqCst);
-                let Some((_, slot)) = pending.get(i) else {
+                let Some(slot) = pending.get(i) else {
                     break;
                 };
                 let out = match source.detected(slot) {
-                    Some(kept) => kept,
+                    Some(kept) => {
+                        reused.fetch_add(1, Ordering::SeqCst);
+                        kept
+                    }
                     None => detect_image(session, slot, source),
                 };
                 if let Ok(mut r) = results.lock() {
@@ -196,16 +212,40 @@ pub fn detect_session(
     // as not detected below (the panic itself reaches the job's error through the
     // worker's catch).
     let results = results.into_inner().unwrap_or_else(|p| p.into_inner());
+    let outcomes: Vec<(ImageSlot, ImageDetection)> = pending
+        .into_iter()
+        .zip(results)
+        .filter_map(|(slot, r)| Some((slot, r?)))
+        .collect();
+    let (detected, mut report) = merge_detections(session, outcomes)?;
+    report.seconds = start.elapsed().as_secs_f64();
+    report.images_reused = reused.into_inner();
+    Ok((detected, Some(report)))
+}
+
+/// Put what images gave into their session: each slot's points or lines become its
+/// frame's (or ring entry's) detections and the slot no longer awaits detection; slots
+/// without an outcome stay as they were. Returns the session, validated again, and the
+/// report of the outcomes (its `seconds` 0: the caller times the detection). An image
+/// that could not be read fails the merge with `InputMissing`; detections the session
+/// validation refuses fail it with `Inconsistent` (a bug of the detector).
+pub fn merge_detections(
+    session: &Session,
+    outcomes: Vec<(ImageSlot, ImageDetection)>,
+) -> Result<(Session, DetectionReport), DetectionFailure> {
     let mut manifest = session.manifest.clone();
     let mut images = Vec::new();
-    for ((fi, slot), r) in pending.iter().zip(results) {
-        let Some(ImageDetection { report, found }) = r else {
-            continue;
-        };
+    for (slot, ImageDetection { report, found }) in outcomes {
         // Detected (or skipped with a reason): no longer an image awaiting detection.
-        match fi {
+        match slot.frame_pos {
             Some(fi) => {
-                let frame = &mut manifest.frames[*fi];
+                let Some(frame) = manifest.frames.get_mut(fi) else {
+                    return Err(DetectionFailure::Inconsistent {
+                        field: slot.field,
+                        expected: "a frame of the session".into(),
+                        report: DetectionReport::of(images),
+                    });
+                };
                 frame.images.remove(&slot.camera);
                 match found {
                     Found::Points(obs) if !obs.is_empty() => {
@@ -233,13 +273,7 @@ pub fn detect_session(
         .filter(|r| r.unreadable)
         .map(|r| (r.field.clone(), r.error.clone().unwrap_or_default()))
         .collect();
-    let report = DetectionReport {
-        images_total: images.len(),
-        images_skipped: images.iter().filter(|r| r.error.is_some()).count(),
-        points_total: images.iter().map(|r| r.points).sum(),
-        seconds: start.elapsed().as_secs_f64(),
-        images,
-    };
+    let report = DetectionReport::of(images);
     if !unreadable.is_empty() {
         return Err(DetectionFailure::InputMissing {
             images: unreadable,
@@ -247,7 +281,7 @@ pub fn detect_session(
         });
     }
     match from_manifest(manifest) {
-        Ok(detected) => Ok((detected, Some(report))),
+        Ok(detected) => Ok((detected, report)),
         Err(e) => Err(DetectionFailure::Inconsistent {
             field: e.field,
             expected: e.expected,
@@ -288,16 +322,23 @@ impl ImageDetection {
     fn of(report: ImageReport, found: Found) -> Self {
         ImageDetection { report, found }
     }
+
+    /// An image that gave nothing, for `why` (it is reported as skipped).
+    pub fn skipped(session: &Session, slot: &ImageSlot, why: String) -> Self {
+        let mut report = blank_report(slot);
+        report.error = Some(why);
+        ImageDetection::of(report, Found::none(session))
+    }
+
+    /// Whether the image's bytes could not be read (a storage failure, not an outcome).
+    pub fn unreadable(&self) -> bool {
+        self.report.unreadable
+    }
 }
 
-/// Detect one image of the session (read through `source`): the unit of work of the
-/// detection stage, and of detection at upload.
-pub fn detect_image(
-    session: &Session,
-    slot: &ImageSlot,
-    source: &dyn ImageSource,
-) -> ImageDetection {
-    let mut report = ImageReport {
+/// The report line of an image before detection.
+fn blank_report(slot: &ImageSlot) -> ImageReport {
+    ImageReport {
         field: slot.field.clone(),
         camera: slot.camera.clone(),
         frame: slot.frame,
@@ -308,23 +349,39 @@ pub fn detect_image(
         rejected: vec![],
         error: None,
         unreadable: false,
-    };
+    }
+}
+
+impl Found {
+    /// Nothing found, of the kind the session's method detects.
+    fn none(session: &Session) -> Found {
+        if session.manifest.method == Method::Vanishing {
+            Found::Lines(vec![])
+        } else {
+            Found::Points(vec![])
+        }
+    }
+}
+
+/// Detect one image of the session (read through `source`): the unit of work of the
+/// detection stage, and of detection at upload.
+pub fn detect_image(
+    session: &Session,
+    slot: &ImageSlot,
+    source: &dyn ImageSource,
+) -> ImageDetection {
     let camera = session
         .camera_index(&slot.camera)
         .map(|i| &session.cameras[i].camera);
     let bytes = match source.read(slot) {
         Ok(b) => b,
         Err(e) => {
-            report.error = Some(e);
-            report.unreadable = true;
-            let none = if session.manifest.method == Method::Vanishing {
-                Found::Lines(vec![])
-            } else {
-                Found::Points(vec![])
-            };
-            return ImageDetection::of(report, none);
+            let mut none = ImageDetection::skipped(session, slot, e);
+            none.report.unreadable = true;
+            return none;
         }
     };
+    let mut report = blank_report(slot);
     if session.manifest.method == Method::Vanishing {
         let outcome = Ok(bytes).and_then(|bytes: Vec<u8>| {
             let gray = decode_gray(&bytes, Some(slot.size), source.max_pixels())?;

@@ -1,5 +1,6 @@
-//! Event streams share one poller: a single task reads the newest event id from the
-//! database every [`POLL`] and publishes it; every open stream sleeps on that value and
+//! Event streams share one poller: a single task reads the newest event ids (of job
+//! and of session events) from the database every [`POLL`] and publishes their sum, a
+//! counter that grows whenever either does; every open stream sleeps on that value and
 //! queries its own events only when something new was stored. So a thousand open
 //! dashboards cost one cheap query per tick, and events written by workers in other
 //! processes (which only the database connects) still arrive. Each tenant may hold at
@@ -7,6 +8,7 @@
 
 use super::error::ApiError;
 use crate::jobs::queue::Queue;
+use crate::store::Store;
 use axum::http::StatusCode;
 use std::collections::HashMap;
 use std::sync::{Arc, Mutex};
@@ -33,11 +35,14 @@ pub struct StreamSlot {
 
 impl EventHub {
     /// Start the poller; it stops when `shutdown` turns true.
-    pub fn start(queue: Queue, cap: usize, mut shutdown: watch::Receiver<bool>) -> Arc<Self> {
+    pub fn start(store: Store, cap: usize, mut shutdown: watch::Receiver<bool>) -> Arc<Self> {
         let (tx, rx) = watch::channel(0i64);
+        let queue = Queue::new(store.db.clone());
         tokio::spawn(async move {
             loop {
-                if let Ok(id) = queue.last_event_id().await {
+                let ids = tokio::try_join!(queue.last_event_id(), store.last_session_event_id());
+                if let Ok((jobs, sessions)) = ids {
+                    let id = jobs + sessions;
                     tx.send_if_modified(|v| {
                         let newer = id > *v;
                         *v = (*v).max(id);

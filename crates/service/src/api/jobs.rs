@@ -384,7 +384,7 @@ pub async fn cancel(
 /// later than the newest event stored (anything else would start the stream somewhere
 /// the client did not ask for: from now, from the beginning, or never), `None` without
 /// the header.
-async fn resume_after(state: &AppState, headers: &HeaderMap) -> Result<Option<i64>, ApiError> {
+pub(super) fn last_event_id(headers: &HeaderMap, latest: i64) -> Result<Option<i64>, ApiError> {
     let Some(value) = headers.get("last-event-id") else {
         return Ok(None);
     };
@@ -398,13 +398,20 @@ async fn resume_after(state: &AppState, headers: &HeaderMap) -> Result<Option<i6
         .filter(|s| !s.is_empty() && s.len() <= 19 && s.bytes().all(|b| b.is_ascii_digit()))
         .and_then(|s| s.parse().ok())
         .ok_or_else(|| bad("a non-negative integer, the id of an event this server sent".into()))?;
-    let latest = state.queue.last_event_id().await?;
     if n > latest {
         return Err(bad(format!(
             "an event id this server sent (the latest is {latest}), got {n}"
         )));
     }
     Ok(Some(n))
+}
+
+/// [`last_event_id`] of the job events.
+async fn resume_after(state: &AppState, headers: &HeaderMap) -> Result<Option<i64>, ApiError> {
+    if headers.get("last-event-id").is_none() {
+        return Ok(None);
+    }
+    last_event_id(headers, state.queue.last_event_id().await?)
 }
 
 /// `GET /v1/jobs/{id}/events`: server-sent events, one per stored job event, resumable

@@ -154,7 +154,8 @@ pub fn build_app(state: AppState) -> Router {
         );
     let streams = Router::new()
         .route("/events", get(jobs::tenant_events))
-        .route("/jobs/{id}/events", get(jobs::events));
+        .route("/jobs/{id}/events", get(jobs::events))
+        .route("/sessions/{id}/events", get(sessions::events));
     let timed = Router::new()
         .route("/sessions/{id}", get(sessions::show))
         .route("/sessions/{id}/check", get(sessions::check))
@@ -257,7 +258,7 @@ pub async fn start(
     let state = AppState {
         archive_slots: Arc::new(tokio::sync::Semaphore::new(config.max_concurrent_archives)),
         events: events::EventHub::start(
-            queue.clone(),
+            store.clone(),
             config.max_streams_per_tenant,
             stop_rx.clone(),
         ),

@@ -13,14 +13,20 @@ use crate::store::{rfc3339, ImageRow, SessionRow, Store, Tenant};
 use axum::body::Body;
 use axum::extract::{Path, State};
 use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::Json;
+use futures::Stream;
 use rigcal_calib::check::capture_check;
 use rigcal_core::session::undetected_images;
 use rigcal_core::session::{image_slots, parse_session, ImageSlot, InputError, Session};
 use rigcal_detect::imageio::{self, ImageError, ImageMeta};
+use rigcal_engine::pipeline::detection::awaiting_detection;
 use serde_json::{json, Value};
 use std::collections::HashMap;
+use std::collections::HashSet;
+use std::convert::Infallible;
+use std::time::Duration;
 
 /// Parse a stored or uploaded manifest. Syntax errors are 400 `malformed-json`;
 /// content errors 422 with the field path (`limit-exceeded` for the size limits).
@@ -107,11 +113,11 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
         .filter(|s| !have.contains_key(&(s.camera.clone(), s.frame)))
         .chain(lost.iter().copied())
         .collect();
-    let check: Value = row
-        .capture_check
-        .as_deref()
-        .and_then(|c| serde_json::from_str(c).ok())
-        .unwrap_or(Value::Null);
+    let check: Value = match row.capture_check.as_deref() {
+        Some(c) => serde_json::from_str(c).map_err(ApiError::internal)?,
+        None => Value::Null,
+    };
+    let counts = store.detection_counts(&row.id).await?;
     Ok(json!({
         "id": row.id,
         "vehicle_id": row.vehicle_id,
@@ -124,8 +130,29 @@ async fn view(store: &Store, row: &SessionRow, session: &Session) -> Result<Valu
         "images_received": images.len() - lost.len(),
         "images_missing": missing,
         "images_lost": lost.iter().map(|s| s.field.as_str()).collect::<Vec<_>>(),
+        "images_to_detect": awaiting_detection(session).len(),
+        "images_detected": counts.done + counts.failed,
         "capture_check": check,
+        "capture_check_complete": check_complete(row),
     }))
+}
+
+/// Whether the stored capture check covers every image: one computed at creation from
+/// the session's detections, or one recomputed at upload over all its images.
+fn check_complete(row: &SessionRow) -> bool {
+    row.capture_check.is_some()
+        && match (row.check_detected, row.check_expected) {
+            (Some(d), Some(e)) => d >= e,
+            _ => true,
+        }
+}
+
+/// The (camera, frame) slots of `session` whose images are detected at upload.
+fn to_detect(session: &Session) -> HashSet<(String, i64)> {
+    awaiting_detection(session)
+        .into_iter()
+        .map(|s| (s.camera, s.frame))
+        .collect()
 }
 
 /// The capture check, on a blocking thread (it reconstructs trajectories).
@@ -227,10 +254,13 @@ async fn commit_images(
 async fn store_images(
     store: &Store,
     session_id: &str,
+    session: &Session,
     images: Vec<(ImageSlot, ImageMeta, Staged)>,
 ) -> Result<(), ApiError> {
+    let detect = to_detect(session);
     for r in &commit_images(store, images).await? {
-        store.insert_image(session_id, r).await?;
+        let d = detect.contains(&(r.camera.clone(), r.frame));
+        store.insert_image(session_id, r, d).await?;
     }
     Ok(())
 }
@@ -366,8 +396,10 @@ pub async fn create(
             check.as_deref(),
         )
         .await?;
+    let detect = to_detect(&session);
     for r in &rows {
-        state.store.insert_image(&row.id, r).await?;
+        let d = detect.contains(&(r.camera.clone(), r.frame));
+        state.store.insert_image(&row.id, r, d).await?;
     }
     let v = view(&state.store, &row, &session).await?;
     Ok((
@@ -388,26 +420,88 @@ pub async fn show(
     Ok(Json(view(&state.store, &row, &session).await?))
 }
 
-/// `GET /v1/sessions/{id}/check`: the capture check (409 while detections are pending).
+/// `GET /v1/sessions/{id}/check`: the capture check (409 until every image awaiting
+/// detection is detected; the session view shows the partial check meanwhile).
 pub async fn check(
     State(state): State<AppState>,
     AuthTenant(tenant): AuthTenant,
     Path(id): Path<String>,
 ) -> Result<Json<Value>, ApiError> {
     let row = session_or_404(&state.store, &tenant, &id).await?;
-    match row
-        .capture_check
-        .as_deref()
-        .map(serde_json::from_str::<Value>)
-    {
-        Some(Ok(v)) => Ok(Json(v)),
-        Some(Err(e)) => Err(ApiError::internal(e)),
-        None => Err(ApiError::new(
-            StatusCode::CONFLICT,
-            "check-not-ready",
-            "the capture check runs on detections; this session's images have no detections yet",
-        )),
+    if check_complete(&row) {
+        let text = row.capture_check.as_deref().unwrap_or("null");
+        return Ok(Json(
+            serde_json::from_str(text).map_err(ApiError::internal)?,
+        ));
     }
+    let session = stored_session(&row)?;
+    let expected = awaiting_detection(&session).len();
+    let counts = state.store.detection_counts(&row.id).await?;
+    let received = counts.queued as usize;
+    let detail = if expected == 0 {
+        "the capture check runs on detections; this session has none and no image to detect"
+            .to_string()
+    } else {
+        format!(
+            "{} of {expected} images detected ({received} of {expected} received); the check is complete when every image is detected (GET /v1/sessions/{}/events follows it)",
+            counts.done + counts.failed,
+            row.id
+        )
+    };
+    Err(ApiError::new(
+        StatusCode::CONFLICT,
+        "check-not-ready",
+        detail,
+    ))
+}
+
+/// `GET /v1/sessions/{id}/events`: server-sent events as the session's images are
+/// detected (`image`) and its capture check recomputed (`check`, with `complete`);
+/// resumable with `Last-Event-ID`. The stream ends once the check is complete (at once
+/// for a session with nothing to detect).
+pub async fn events(
+    State(state): State<AppState>,
+    AuthTenant(tenant): AuthTenant,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
+    let row = session_or_404(&state.store, &tenant, &id).await?;
+    let session = stored_session(&row)?;
+    let nothing_to_detect = awaiting_detection(&session).is_empty();
+    let latest = state.store.last_session_event_id().await?;
+    let mut last = super::jobs::last_event_id(&headers, latest)?.unwrap_or(0);
+    let mut slot = state.events.open(&tenant.id)?;
+    let store = state.store.clone();
+    let mut shutdown = state.shutdown.clone();
+    let stream = async_stream::stream! {
+        loop {
+            let Ok(events) = store.session_events_after(&id, last).await else { break };
+            let mut ended = false;
+            for e in events {
+                last = e.id;
+                ended |= e.kind == "check" && e.data["complete"] == json!(true);
+                let data = serde_json::to_string(&e).unwrap_or_default();
+                yield Ok(Event::default().id(e.id.to_string()).event(e.kind.clone()).data(data));
+            }
+            if ended || nothing_to_detect {
+                break;
+            }
+            // Complete before we subscribed, its events already sent earlier.
+            if let Ok(Some(r)) = store.session_by_id(&id).await {
+                if check_complete(&r) && store.session_events_after(&id, last).await.is_ok_and(|e| e.is_empty()) {
+                    break;
+                }
+            }
+            if *shutdown.borrow() {
+                break;
+            }
+            tokio::select! {
+                _ = slot.changed() => {},
+                _ = shutdown.changed() => {},
+            }
+        }
+    };
+    Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 
 /// `PUT /v1/sessions/{id}/images/{camera}/{frame}`: one image, idempotent.
@@ -487,7 +581,7 @@ pub async fn put_image(
             StageError::Read(e) => ApiError::internal(e),
             StageError::Store(e) => ApiError::storage(e),
         })?;
-    store_images(&state.store, &row.id, vec![(slot, meta, staged)]).await?;
+    store_images(&state.store, &row.id, &session, vec![(slot, meta, staged)]).await?;
     let images = state.store.images(&row.id).await?;
     let stored = images
         .iter()
@@ -594,7 +688,7 @@ pub async fn archive(
             }
         }
     }
-    store_images(&state.store, &row.id, images).await?;
+    store_images(&state.store, &row.id, &session, images).await?;
     Ok(Json(view(&state.store, &row, &session).await?))
 }
 

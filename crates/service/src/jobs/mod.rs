@@ -3,6 +3,7 @@
 
 pub mod acceptance;
 pub mod bench;
+pub mod detection;
 pub mod queue;
 pub mod worker;
 

@@ -7,16 +7,15 @@
 //! Everything else (database or blob I/O, a panic in the engine) is treated as transient
 //! and retried with exponential backoff up to the job's attempt limit.
 
+use super::detection::{self, BlobSource};
 use super::queue::{FailOutcome, JobRow, JobStatus, Queue, JOBS_CHANNEL};
 use super::JobOptions;
-use crate::store::blob::BlobStore;
 use crate::store::db::Db;
 use crate::store::{Location, Store};
 use crate::telemetry::Metrics;
 use rigcal_core::session::parse_session;
-use rigcal_core::session::ImageSlot;
 use rigcal_core::verdict::ReasonCode;
-use rigcal_engine::pipeline::{run, Cancelled, ImageSource, Progress};
+use rigcal_engine::pipeline::{run, Cancelled, Progress};
 use serde_json::json;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -166,7 +165,18 @@ async fn worker_loop(
 ) {
     let queue = Queue::new(store.db.clone());
     let lease_ms = cfg.lease.as_millis() as i64;
+    // Uploaded images first: each is short, and together they make the operator's
+    // capture check. The workers of a process share the cores between them.
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let batch = cores.div_ceil(cfg.workers.max(1));
+    let mut refreshes = detection::Refreshes::default();
     while !*stop.borrow() {
+        let max_px = cfg.max_image_pixels;
+        match detection::run_batch(&name, &store, lease_ms, batch, max_px, &mut refreshes).await {
+            Ok(0) => {}
+            Ok(_) => continue,
+            Err(e) => tracing::warn!(worker = %name, "image detection failed (storage): {e}"),
+        }
         match queue.claim(&name, lease_ms).await {
             Ok(Some(job)) => {
                 tracing::info!(job = %job.id, attempt = job.attempts, worker = %name, "claimed");
@@ -265,15 +275,8 @@ async fn run_job(
         }
     };
 
-    let images = match store.images(&job.session_id).await {
-        Ok(rows) => BlobSource {
-            blobs: store.blobs.clone(),
-            max_pixels: cfg.max_image_pixels,
-            by_slot: rows
-                .into_iter()
-                .map(|r| ((r.camera, r.frame), r.sha256))
-                .collect(),
-        },
+    let images = match BlobSource::of(store, &job.session_id, cfg.max_image_pixels).await {
+        Ok(source) => source,
         Err(e) => {
             let p = problem("storage_error", e.to_string(), None);
             let _ = queue.fail(&job.id, name, &p, true, backoff).await;
@@ -478,27 +481,4 @@ pub async fn run_standalone(at: &Location, cfg: WorkerConfig) -> anyhow::Result<
         let _ = h.await;
     }
     Ok(())
-}
-
-/// A session's uploaded images, read from the blob store by (camera, frame).
-struct BlobSource {
-    blobs: BlobStore,
-    max_pixels: u64,
-    by_slot: std::collections::HashMap<(String, i64), String>,
-}
-
-impl ImageSource for BlobSource {
-    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
-        let sha = self
-            .by_slot
-            .get(&(slot.camera.clone(), slot.frame))
-            .ok_or_else(|| format!("{} was never uploaded", slot.field))?;
-        self.blobs
-            .get(sha)
-            .map_err(|e| format!("stored image {sha} unreadable: {e}"))
-    }
-
-    fn max_pixels(&self) -> u64 {
-        self.max_pixels
-    }
 }

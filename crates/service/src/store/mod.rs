@@ -8,6 +8,7 @@
 
 pub mod blob;
 pub mod db;
+pub mod detections;
 pub mod idempotency;
 pub mod vehicle_models;
 pub mod webhooks;
@@ -96,6 +97,11 @@ pub struct SessionRow {
     pub method: String,
     pub manifest: String,
     pub capture_check: Option<String>,
+    /// Of the images awaiting detection, how many the stored check covers, and how many
+    /// there are (both `None` for a check computed at creation from the session's own
+    /// detections, which is complete).
+    pub check_detected: Option<i64>,
+    pub check_expected: Option<i64>,
     pub created_at: i64,
 }
 
@@ -138,6 +144,8 @@ fn session_from(row: &Rec) -> sqlx::Result<SessionRow> {
         method: row.get("method")?,
         manifest: row.get("manifest")?,
         capture_check: row.get("capture_check")?,
+        check_detected: row.get("check_detected")?,
+        check_expected: row.get("check_expected")?,
         created_at: row.get("created_at")?,
     })
 }
@@ -283,6 +291,8 @@ impl Store {
             method: method.to_string(),
             manifest: manifest.to_string(),
             capture_check: capture_check.map(str::to_string),
+            check_detected: None,
+            check_expected: None,
             created_at: now_ms(),
         };
         self.db.execute(sql("INSERT INTO sessions (id, tenant_id, vehicle_id, method, manifest, capture_check, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7)")
@@ -329,10 +339,18 @@ impl Store {
         rows.iter().map(image_from).collect()
     }
 
-    /// Record an image whose blob is already durable. Returns the stored row: the new
-    /// one, or the one already there (the caller compares hashes for idempotency).
-    pub async fn insert_image(&self, session_id: &str, img: &ImageRow) -> sqlx::Result<ImageRow> {
-        self.db.execute(sql("INSERT INTO images (session_id, camera, frame, sha256, bytes, format, width, height, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) ON CONFLICT(session_id, camera, frame) DO NOTHING")
+    /// Record an image whose blob is already durable and, when `detect`, queue its
+    /// detection in the same transaction (so no stored image lacks its detection row).
+    /// Returns the stored row: the new one, or the one already there (the caller
+    /// compares hashes for idempotency).
+    pub async fn insert_image(
+        &self,
+        session_id: &str,
+        img: &ImageRow,
+        detect: bool,
+    ) -> sqlx::Result<ImageRow> {
+        let mut tx = self.db.begin().await?;
+        let n = tx.execute(sql("INSERT INTO images (session_id, camera, frame, sha256, bytes, format, width, height, created_at) VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9) ON CONFLICT(session_id, camera, frame) DO NOTHING")
             .bind(session_id)
             .bind(&img.camera)
             .bind(img.frame)
@@ -343,8 +361,26 @@ impl Store {
             .bind(img.height)
             .bind(now_ms()))
             .await?;
-        let r = self
-            .db
+        if n == 1 && detect {
+            tx.execute(sql("INSERT INTO image_detections (id, session_id, camera, frame, sha256, status, created_at) VALUES ($1, $2, $3, $4, $5, 'pending', $6) ON CONFLICT(session_id, camera, frame) DO NOTHING")
+                .bind(uuid::Uuid::new_v4().to_string())
+                .bind(session_id)
+                .bind(&img.camera)
+                .bind(img.frame)
+                .bind(&img.sha256)
+                .bind(now_ms()))
+                .await?;
+            // Idle workers on PostgreSQL wake for work on this channel (jobs and images).
+            if self.db.backend() == db::Backend::Postgres {
+                tx.execute(
+                    sql("SELECT pg_notify($1, $2)")
+                        .bind(crate::jobs::queue::JOBS_CHANNEL)
+                        .bind(session_id),
+                )
+                .await?;
+            }
+        }
+        let r = tx
             .fetch_one(
                 sql("SELECT * FROM images WHERE session_id = $1 AND camera = $2 AND frame = $3")
                     .bind(session_id)
@@ -352,6 +388,7 @@ impl Store {
                     .bind(img.frame),
             )
             .await?;
+        tx.commit().await?;
         image_from(&r)
     }
 

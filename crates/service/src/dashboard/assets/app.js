@@ -188,6 +188,34 @@ function stopStream() {
 }
 
 // EventSource cannot send an Authorization header, so the stream is read with fetch.
+// Read a server-sent event stream to its end, calling onEvent({event, id, data}) for
+// each event (keep-alive comments skipped).
+async function readEvents(resp, onEvent) {
+  const reader = resp.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buf = "";
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) return;
+    buf += value;
+    let cut;
+    while ((cut = buf.indexOf("\n\n")) >= 0) {
+      const raw = buf.slice(0, cut);
+      buf = buf.slice(cut + 2);
+      const ev = { event: "message", data: "" };
+      for (const line of raw.split("\n")) {
+        const i = line.indexOf(":");
+        if (i <= 0) continue;
+        const k = line.slice(0, i);
+        const v = line.slice(i + 1).replace(/^ /, "");
+        if (k === "event") ev.event = v;
+        else if (k === "data") ev.data += v;
+        else if (k === "id") ev.id = v;
+      }
+      if (ev.data) onEvent(ev);
+    }
+  }
+}
+
 async function startStream() {
   stopStream();
   const ctrl = new AbortController();
@@ -203,29 +231,10 @@ async function startStream() {
       if (!resp.ok) throw new Error(`HTTP ${resp.status}`);
       conn.textContent = "● live";
       delay = 500;
-      const reader = resp.body.pipeThrough(new TextDecoderStream()).getReader();
-      let buf = "";
-      for (;;) {
-        const { value, done } = await reader.read();
-        if (done) break;
-        buf += value;
-        let cut;
-        while ((cut = buf.indexOf("\n\n")) >= 0) {
-          const raw = buf.slice(0, cut);
-          buf = buf.slice(cut + 2);
-          const ev = { event: "message", data: "" };
-          for (const line of raw.split("\n")) {
-            const i = line.indexOf(":");
-            if (i <= 0) continue;
-            const k = line.slice(0, i);
-            const v = line.slice(i + 1).replace(/^ /, "");
-            if (k === "event") ev.event = v;
-            else if (k === "data") ev.data += v;
-            else if (k === "id") { ev.id = v; last = v; }
-          }
-          if (ev.event === "job") onJobEvent(JSON.parse(ev.data));
-        }
-      }
+      await readEvents(resp, (ev) => {
+        if (ev.id !== undefined) last = ev.id;
+        if (ev.event === "job") onJobEvent(JSON.parse(ev.data));
+      });
     } catch (e) {
       if (ctrl.signal.aborted) return;
     }
@@ -688,12 +697,86 @@ async function renderVehicle(vehicle) {
 
 // ---- Upload -----------------------------------------------------------------------
 
+// The capture check of a session as it is known now: verdict, reasons, recommendations,
+// and how many of its images are detected (the check is partial until all are).
+function checkBox(box, view) {
+  const check = view.check;
+  const complete = view.complete;
+  box.dataset.complete = String(complete);
+  const verdict = check ? check.verdict : null;
+  box.className = `box ${verdict === "ok" ? "ok" : verdict === "insufficient" ? "bad" : verdict ? "warn" : ""}`;
+  const progress = h("p", { id: "check-progress" }, view.expected > 0
+    ? `${view.detected} of ${view.expected} images detected${complete ? "" : " so far"}.`
+    : "The session carries its detections: nothing to detect.");
+  const reasons = check && check.reasons.length
+    ? h("ul", { id: "check-reasons" }, check.reasons.map((r) => h("li", { dataset: { code: r.code } }, h("code", {}, r.code), " ", r.message)))
+    : null;
+  const recs = check && check.recommendations.length
+    ? [h("h3", {}, "Recommendations"), h("ul", {}, check.recommendations.map((t) => h("li", {}, t)))]
+    : null;
+  const parts = [
+    h("h2", {}, complete ? "Capture check" : "Capture check (partial)"),
+    progress,
+    verdict ? h("p", {}, "Verdict: ", h("span", { class: `badge ${verdict === "ok" ? "succeeded" : verdict === "insufficient" ? "failed" : "degraded"}`, id: "check-verdict", dataset: { verdict } }, verdict),
+      complete ? "" : " (over the images detected so far)") : h("p", { class: "muted" }, "Waiting for the first images to be detected…"),
+    reasons, ...(recs || [])];
+  box.replaceChildren(...parts.filter((x) => x));
+  if (complete) announce(`Capture check complete: ${verdict}`);
+}
+
+// Follow a session's capture check until it is complete (or the page changes).
+async function followCheck(session, box) {
+  const view = {
+    check: session.capture_check,
+    complete: session.capture_check_complete,
+    detected: session.images_detected,
+    expected: session.images_to_detect,
+  };
+  checkBox(box, view);
+  if (view.complete) return;
+  const ctrl = new AbortController();
+  const token = state.view;
+  token.abort = ctrl;
+  let images = 0;
+  try {
+    const resp = await fetch(`/v1/sessions/${encodeURIComponent(session.id)}/events`, { headers: authHeaders({ Accept: "text/event-stream" }), signal: ctrl.signal });
+    if (!resp.ok) throw new ApiError(resp.status, {});
+    await readEvents(resp, (ev) => {
+      const e = JSON.parse(ev.data);
+      // The stream replays every event from the first: its image events count them all.
+      if (ev.event === "image") { images += 1; view.detected = Math.max(view.detected, images); }
+      if (ev.event === "check") {
+        view.check = e.data.check;
+        view.complete = e.data.complete;
+        view.detected = e.data.images_detected;
+        view.expected = e.data.images_expected;
+      }
+      if (state.view === token) checkBox(box, view);
+    });
+  } catch (err) {
+    if (!ctrl.signal.aborted && state.view === token) box.append(problemBox(err));
+  }
+}
+
 function renderUpload() {
   state.view = { name: "upload" };
   const file = h("input", { id: "archive", name: "archive", type: "file", accept: ".tar,.zip,application/x-tar,application/zip", required: true, "aria-describedby": "archive-help" });
   const bar = h("progress", { class: "upload-progress", max: 100, value: 0, hidden: true, "aria-label": "upload progress" });
   const status = h("p", { role: "status", id: "upload-status" });
-  const submit = h("button", { type: "submit" }, "Upload and start job");
+  const submit = h("button", { type: "submit" }, "Upload");
+  const checkPanel = h("section", { id: "capture-check", "aria-live": "polite", hidden: true });
+  const start = h("button", { type: "button", id: "start-job", hidden: true }, "Start calibration job");
+  let sessionId = null;
+  start.addEventListener("click", async () => {
+    start.disabled = true;
+    try {
+      const job = await api("/v1/jobs", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ session_id: sessionId }) });
+      location.hash = `#/jobs/${job.id}`;
+    } catch (err) {
+      status.replaceChildren(problemBox(err));
+      start.disabled = false;
+    }
+  });
   const form = h("form", {
     class: "box", onsubmit: (e) => {
       e.preventDefault();
@@ -715,7 +798,7 @@ function renderUpload() {
         }
       };
       xhr.onerror = () => { status.replaceChildren(problemBox(new ApiError(0, { detail: "the upload failed (network)" }))); submit.disabled = false; };
-      xhr.onload = async () => {
+      xhr.onload = () => {
         let body = {};
         try { body = JSON.parse(xhr.responseText); } catch (_) { /* not JSON */ }
         if (xhr.status !== 201 && xhr.status !== 200) {
@@ -724,27 +807,26 @@ function renderUpload() {
           return;
         }
         bar.value = 100;
-        status.textContent = `Session ${body.id} stored; starting the job…`;
-        try {
-          const job = await api("/v1/jobs", { method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ session_id: body.id }) });
-          location.hash = `#/jobs/${job.id}`;
-        } catch (err) {
-          status.replaceChildren(problemBox(err));
-          submit.disabled = false;
-        }
+        sessionId = body.id;
+        status.textContent = `Session ${body.id} stored (${body.images_received} image(s)). Its capture check is below; start the job when you are satisfied, or capture again.`;
+        checkPanel.hidden = false;
+        start.hidden = false;
+        followCheck(body, checkPanel);
       };
       xhr.send(f);
     }
   },
   h("label", { for: "archive" }, "Session archive"),
-  h("p", { class: "muted", id: "archive-help" }, "A .tar or .zip with session.json at its root and the images it names (see docs/formats.md)."),
+  h("p", { class: "muted", id: "archive-help" }, "A .tar or .zip with session.json at its root and the images it names (see docs/formats.md). Its images are detected as soon as they are stored, and the capture check tells whether the capture can calibrate before any job runs."),
   file, " ", submit, h("div", {}, bar), status);
-  show("Upload", h("h1", {}, "Upload a capture session"), form);
+  show("Upload", h("h1", {}, "Upload a capture session"), form, checkPanel, start);
 }
 
 // ---- Router ------------------------------------------------------------------------
 
 function route() {
+  // A page's own stream (the upload page's capture check) ends with the page.
+  if (state.view && state.view.abort) state.view.abort.abort();
   if (!state.key && !state.noAuth) { renderKeyForm(); return; }
   const hash = location.hash.replace(/^#/, "") || "/jobs";
   const [path, query] = hash.split("?");

@@ -1,0 +1,374 @@
+//! Detection at upload: workers detect each uploaded image as it arrives (before they
+//! take jobs: an image is short work and feeds the operator's capture check), keep the
+//! outcome for the job, and recompute the session's capture check as outcomes land, so
+//! the check is complete moments after the last image of a capture instead of after a
+//! whole solve.
+
+use crate::store::blob::BlobStore;
+use crate::store::detections::{DetectionTask, StoredDetection};
+use crate::store::Store;
+use rigcal_calib::check::capture_check;
+use rigcal_core::session::{parse_session, ImageSlot, Session};
+use rigcal_engine::pipeline::detection::{
+    awaiting_detection, detect_image, merge_detections, DetectionFailure, ImageDetection,
+    DETECTOR_VERSION,
+};
+use rigcal_engine::pipeline::ImageSource;
+use serde_json::json;
+use std::collections::{HashMap, HashSet};
+use std::time::{Duration, Instant};
+
+/// A session's uploaded images, read from the blob store by (camera, frame), with the
+/// detections made at upload that the job may reuse (same bytes, this build's detector).
+pub struct BlobSource {
+    pub blobs: BlobStore,
+    pub max_pixels: u64,
+    pub by_slot: HashMap<(String, i64), String>,
+    pub detected: HashMap<(String, i64), ImageDetection>,
+}
+
+impl BlobSource {
+    /// The source of `session_id`'s images, with its reusable detections.
+    pub async fn of(store: &Store, session_id: &str, max_pixels: u64) -> sqlx::Result<Self> {
+        let by_slot: HashMap<(String, i64), String> = store
+            .images(session_id)
+            .await?
+            .into_iter()
+            .map(|r| ((r.camera, r.frame), r.sha256))
+            .collect();
+        let detected = store
+            .detections(session_id)
+            .await?
+            .into_iter()
+            .filter_map(|d| {
+                let key = (d.camera.clone(), d.frame);
+                reusable(&d, by_slot.get(&key)?).map(|o| (key, o))
+            })
+            .collect();
+        Ok(BlobSource {
+            blobs: store.blobs.clone(),
+            max_pixels,
+            by_slot,
+            detected,
+        })
+    }
+}
+
+/// A stored outcome a job may use in place of detecting: of these bytes, of this
+/// build's detector, and one that parses (one that does not is detected again, and the
+/// disagreement logged: it is ours, not the client's).
+fn reusable(d: &StoredDetection, sha256: &str) -> Option<ImageDetection> {
+    if d.sha256 != sha256 || d.detector != DETECTOR_VERSION {
+        return None;
+    }
+    let doc = d.outcome.as_ref().ok()?;
+    match serde_json::from_str::<ImageDetection>(doc) {
+        Ok(o) => Some(o),
+        Err(e) => {
+            tracing::error!(
+                "internal error: a stored detection of {} frame {} does not parse ({e}); detecting it again",
+                d.camera,
+                d.frame
+            );
+            None
+        }
+    }
+}
+
+impl ImageSource for BlobSource {
+    fn read(&self, slot: &ImageSlot) -> Result<Vec<u8>, String> {
+        let sha = self
+            .by_slot
+            .get(&(slot.camera.clone(), slot.frame))
+            .ok_or_else(|| format!("{} was never uploaded", slot.field))?;
+        self.blobs
+            .get(sha)
+            .map_err(|e| format!("stored image {sha} unreadable: {e}"))
+    }
+
+    fn detected(&self, slot: &ImageSlot) -> Option<ImageDetection> {
+        self.detected
+            .get(&(slot.camera.clone(), slot.frame))
+            .cloned()
+    }
+
+    fn max_pixels(&self) -> u64 {
+        self.max_pixels
+    }
+}
+
+/// How often a session's partial capture check is recomputed while its images are
+/// being detected (the check reconstructs trajectories: once per image would cost more
+/// than the detections). The check that covers the last uploaded image is computed at
+/// once.
+const REFRESH_EVERY: Duration = Duration::from_secs(1);
+
+/// A worker's sessions whose stored check is behind their detections.
+#[derive(Default)]
+pub struct Refreshes {
+    last: HashMap<String, Instant>,
+    behind: HashSet<String>,
+}
+
+impl Refreshes {
+    /// Recompute the checks that are behind: all of them when `all` (the worker is
+    /// idle), else those last computed over [`REFRESH_EVERY`] ago or with no image
+    /// left to detect.
+    async fn run(&mut self, store: &Store, all: bool) -> sqlx::Result<()> {
+        let behind: Vec<String> = self.behind.iter().cloned().collect();
+        for id in behind {
+            let due = all
+                || self
+                    .last
+                    .get(&id)
+                    .is_none_or(|t| t.elapsed() >= REFRESH_EVERY)
+                || {
+                    let c = store.detection_counts(&id).await?;
+                    c.done + c.failed == c.queued
+                };
+            if !due {
+                continue;
+            }
+            self.behind.remove(&id);
+            self.last.insert(id.clone(), Instant::now());
+            if let Some(row) = store.session_by_id(&id).await? {
+                match parse_session(row.manifest.as_bytes()) {
+                    Ok(session) => refresh_check(store, &id, session).await?,
+                    Err(e) => {
+                        tracing::error!(session = %id, "internal error: the stored session no longer validates ({}: {})", e.field, e.expected)
+                    }
+                }
+            }
+        }
+        // Forget sessions not touched for a while.
+        self.last.retain(|_, t| t.elapsed() < REFRESH_EVERY * 60);
+        Ok(())
+    }
+}
+
+/// Claim up to `limit` pending image detections and run them in parallel; record each
+/// outcome and recompute the capture checks that are due (see [`Refreshes`]). Returns
+/// how many were claimed (0: nothing to do; the checks still behind are brought up to
+/// date then).
+pub async fn run_batch(
+    name: &str,
+    store: &Store,
+    lease_ms: i64,
+    limit: usize,
+    max_pixels: u64,
+    refreshes: &mut Refreshes,
+) -> sqlx::Result<usize> {
+    let tasks = store.claim_detections(name, lease_ms, limit as i64).await?;
+    if tasks.is_empty() {
+        refreshes.run(store, true).await?;
+        return Ok(0);
+    }
+    // Each task's session, parsed once per batch.
+    let mut sessions: HashMap<String, Result<Session, String>> = HashMap::new();
+    for t in &tasks {
+        if sessions.contains_key(&t.session_id) {
+            continue;
+        }
+        let parsed = match store.session_by_id(&t.session_id).await? {
+            Some(row) => parse_session(row.manifest.as_bytes()).map_err(|e| {
+                format!(
+                    "internal error: the stored session no longer validates ({}: {})",
+                    e.field, e.expected
+                )
+            }),
+            None => Err("internal error: the image's session no longer exists".into()),
+        };
+        sessions.insert(t.session_id.clone(), parsed);
+    }
+    let blobs = store.blobs.clone();
+    let work: Vec<(DetectionTask, Result<Session, String>)> = tasks
+        .iter()
+        .map(|t| (t.clone(), sessions[&t.session_id].clone()))
+        .collect();
+    let outcomes = tokio::task::spawn_blocking(move || detect_all(&work, &blobs, max_pixels))
+        .await
+        .unwrap_or_else(|e| {
+            vec![Err(format!("internal error: the detection task failed: {e}")); tasks.len()]
+        });
+    for (task, outcome) in tasks.iter().zip(outcomes) {
+        let (doc, event) = match &outcome {
+            Ok(d) => match serde_json::to_string(d) {
+                Ok(doc) => (Ok(doc), image_event(task, Some(d), None)),
+                Err(e) => {
+                    let why = format!("internal error: the outcome did not serialise: {e}");
+                    let ev = image_event(task, None, Some(&why));
+                    (Err(why), ev)
+                }
+            },
+            Err(why) => (Err(why.clone()), image_event(task, None, Some(why))),
+        };
+        if let Err(why) = &doc {
+            tracing::warn!(session = %task.session_id, camera = %task.camera, frame = task.frame, attempt = task.attempts, "detection at upload gave no outcome: {why}");
+        }
+        let doc = doc.as_deref().map_err(String::as_str);
+        if store
+            .finish_detection(task, name, DETECTOR_VERSION, doc, &event)
+            .await?
+            && sessions[&task.session_id].is_ok()
+        {
+            refreshes.behind.insert(task.session_id.clone());
+        }
+    }
+    refreshes.run(store, false).await?;
+    Ok(tasks.len())
+}
+
+/// Detect every task's image, over the cores. An outcome is `Err` when the image gave
+/// no outcome to keep: its bytes could not be read, its session is unusable, or the
+/// detector panicked (each retried by another claim, up to the attempt limit).
+fn detect_all(
+    work: &[(DetectionTask, Result<Session, String>)],
+    blobs: &BlobStore,
+    max_pixels: u64,
+) -> Vec<Result<ImageDetection, String>> {
+    std::thread::scope(|s| {
+        let handles: Vec<_> = work
+            .iter()
+            .map(|(task, session)| {
+                s.spawn(move || {
+                    let session = session.as_ref().map_err(Clone::clone)?;
+                    let slot = awaiting_detection(session)
+                        .into_iter()
+                        .find(|s| s.camera == task.camera && s.frame == task.frame)
+                        .ok_or_else(|| {
+                            format!(
+                                "internal error: camera {} frame {} is not an image awaiting detection in its session",
+                                task.camera, task.frame
+                            )
+                        })?;
+                    let source = BlobSource {
+                        blobs: blobs.clone(),
+                        max_pixels,
+                        by_slot: HashMap::from([(
+                            (task.camera.clone(), task.frame),
+                            task.sha256.clone(),
+                        )]),
+                        detected: HashMap::new(),
+                    };
+                    let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+                        detect_image(session, &slot, &source)
+                    }))
+                    .map_err(|_| "internal error: the detector panicked on this image".to_string())?;
+                    if out.unreadable() {
+                        return Err(out.report.error.clone().unwrap_or_default());
+                    }
+                    Ok(out)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err("internal error: a detection thread panicked".into()))
+            })
+            .collect()
+    })
+}
+
+fn image_event(
+    task: &DetectionTask,
+    outcome: Option<&ImageDetection>,
+    error: Option<&str>,
+) -> serde_json::Value {
+    match outcome {
+        Some(d) => json!({
+            "camera": task.camera,
+            "frame": task.frame,
+            "field": d.report.field,
+            "tags": d.report.tags,
+            "points": d.report.points,
+            "error": d.report.error,
+        }),
+        None => json!({
+            "camera": task.camera,
+            "frame": task.frame,
+            "tags": 0,
+            "points": 0,
+            "error": error,
+        }),
+    }
+}
+
+/// Recompute `session`'s capture check over the detections stored so far and store it
+/// (with its `check` event) unless a fuller one is there already.
+pub async fn refresh_check(store: &Store, session_id: &str, session: Session) -> sqlx::Result<()> {
+    let images: HashMap<(String, i64), String> = store
+        .images(session_id)
+        .await?
+        .into_iter()
+        .map(|r| ((r.camera, r.frame), r.sha256))
+        .collect();
+    let stored = store.detections(session_id).await?;
+    let outcome = tokio::task::spawn_blocking(move || -> Result<(serde_json::Value, i64, i64), String> {
+        let awaiting = awaiting_detection(&session);
+        let expected = awaiting.len() as i64;
+        let outcomes: Vec<(ImageSlot, ImageDetection)> = awaiting
+            .into_iter()
+            .filter_map(|slot| {
+                let key = (slot.camera.clone(), slot.frame);
+                let d = stored.iter().find(|d| (d.camera.clone(), d.frame) == key)?;
+                let o = match &d.outcome {
+                    Ok(_) => reusable(d, images.get(&key)?)?,
+                    Err(why) => ImageDetection::skipped(
+                        &session,
+                        &slot,
+                        format!("the detector gave no outcome at upload: {why}"),
+                    ),
+                };
+                Some((slot, o))
+            })
+            .collect();
+        let detected = outcomes.len() as i64;
+        let merged = match merge_detections(&session, outcomes) {
+            Ok((merged, _)) => merged,
+            Err(DetectionFailure::Inconsistent { field, expected, .. }) => {
+                return Err(format!(
+                    "internal error: the detections at upload do not make a valid session ({field}: expected {expected})"
+                ))
+            }
+            Err(DetectionFailure::InputMissing { images, .. }) => {
+                return Err(format!(
+                    "internal error: a kept detection is of an unreadable image ({})",
+                    images.first().map_or("", |i| i.0.as_str())
+                ))
+            }
+            Err(DetectionFailure::Cancelled(_)) => {
+                return Err("internal error: merging detections was cancelled".into())
+            }
+        };
+        let check = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| capture_check(&merged)))
+            .map_err(|_| "internal error: the capture check panicked".to_string())?;
+        let check = serde_json::to_value(&check)
+            .map_err(|e| format!("internal error: the capture check did not serialise: {e}"))?;
+        Ok((check, expected, detected))
+    })
+    .await;
+    let (check, expected, detected) = match outcome {
+        Ok(Ok(x)) => x,
+        Ok(Err(why)) => {
+            tracing::error!(session = %session_id, "{why}");
+            return Ok(());
+        }
+        Err(e) => {
+            tracing::error!(session = %session_id, "internal error: the capture check task failed: {e}");
+            return Ok(());
+        }
+    };
+    let text = check.to_string();
+    let event = json!({
+        "complete": detected == expected,
+        "images_detected": detected,
+        "images_expected": expected,
+        "check": check,
+    });
+    store
+        .store_check(session_id, &text, detected, expected, &event)
+        .await?;
+    Ok(())
+}
