@@ -7,6 +7,7 @@ use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::plane::{is_planar, principal_axes};
 use rigcal_core::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
 use rigcal_core::linalg::null_vector;
+use rigcal_solve::lm::{minimize, LeastSquares, Rules};
 
 /// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
 pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
@@ -173,68 +174,45 @@ fn dlt_pose(local: &[Vec3], xy: &[Vec2]) -> Option<Pose> {
     Some(Pose::new(rot, trans))
 }
 
-/// Stopping and damping rules of [`damped_pose_fit`].
-#[derive(Clone, Copy, Debug)]
-pub struct PoseFitRules {
-    pub max_iterations: usize,
-    /// Damping increases tried per iteration before it gives up.
-    pub tries: usize,
-    /// Converged when the cost falls by less than this fraction (or the step is
-    /// shorter than `min_step`).
-    pub rel_decrease: f64,
-    pub min_step: f64,
-    pub min_lambda: f64,
+/// A pose fit as a problem of the LM driver: normal equations and cost given as
+/// closures, steps `pose.perturbed(δt, δω)`.
+struct PoseFit6<N, C> {
+    normal: N,
+    cost: C,
 }
 
-/// Gauss–Newton with Levenberg damping over one pose, steps `pose.perturbed(δt, δω)`.
-/// `normal(pose)` gives the normal equations (JᵀJ, Jᵀr) there, `None` when they cannot
-/// be formed (the fit stops at the pose it has); `cost(pose)` the cost, `None` where it
-/// is undefined (such a step is refused like a worse one). One driver for every pose
-/// fit of the estimators, so damping and stopping are the same everywhere.
+impl<N, C> LeastSquares<6> for PoseFit6<N, C>
+where
+    N: Fn(&Pose) -> Option<(Matrix6<f64>, Vector6<f64>)>,
+    C: Fn(&Pose) -> Option<f64>,
+{
+    type Point = Pose;
+    fn linearize(&self, pose: &Pose) -> Option<(Matrix6<f64>, Vector6<f64>)> {
+        (self.normal)(pose)
+    }
+    fn cost(&self, pose: &Pose) -> Option<f64> {
+        (self.cost)(pose)
+    }
+    fn retract(&self, pose: &Pose, step: &Vector6<f64>) -> Pose {
+        pose.perturbed(
+            &Vec3::new(step[0], step[1], step[2]),
+            &Vec3::new(step[3], step[4], step[5]),
+        )
+    }
+}
+
+/// Levenberg–Marquardt over one pose (the driver of `rigcal_solve::lm`), steps
+/// `pose.perturbed(δt, δω)`. `normal(pose)` gives the normal equations (JᵀJ, Jᵀr)
+/// there, `None` when they cannot be formed (the fit stops at the pose it has);
+/// `cost(pose)` the cost, `None` where it is undefined (such a step is refused like a
+/// worse one). Returns `init` when the cost is undefined there.
 pub fn damped_pose_fit(
     init: Pose,
-    rules: &PoseFitRules,
+    rules: &Rules,
     normal: impl Fn(&Pose) -> Option<(Matrix6<f64>, Vector6<f64>)>,
     cost: impl Fn(&Pose) -> Option<f64>,
 ) -> Pose {
-    let mut pose = init;
-    let Some(mut c) = cost(&pose) else {
-        return init;
-    };
-    let mut lambda = 1e-3;
-    for _ in 0..rules.max_iterations {
-        let Some((h, g)) = normal(&pose) else {
-            return pose;
-        };
-        let mut improved = false;
-        for _ in 0..rules.tries {
-            let mut hd = h;
-            for i in 0..6 {
-                hd[(i, i)] += lambda * h[(i, i)].max(1e-12);
-            }
-            let Some(step) = hd.cholesky().map(|ch| ch.solve(&(-g))) else {
-                break;
-            };
-            let cand = pose.perturbed(
-                &Vec3::new(step[0], step[1], step[2]),
-                &Vec3::new(step[3], step[4], step[5]),
-            );
-            if let Some(cc) = cost(&cand).filter(|&cc| cc < c) {
-                let done =
-                    c - cc < rules.rel_decrease * c.max(1e-30) || step.norm() < rules.min_step;
-                pose = cand;
-                c = cc;
-                lambda = (lambda / 3.0).max(rules.min_lambda);
-                improved = !done;
-                break;
-            }
-            lambda *= 4.0;
-        }
-        if !improved {
-            break;
-        }
-    }
-    pose
+    minimize(&PoseFit6 { normal, cost }, init, rules).map_or(init, |fit| fit.point)
 }
 
 /// Gauss–Newton with Levenberg damping on the pixel reprojection error.
@@ -257,14 +235,7 @@ pub fn refine_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2], init: Pose) -> 
         }
         Some((h, g))
     };
-    let rules = PoseFitRules {
-        max_iterations: 50,
-        tries: 10,
-        rel_decrease: 1e-14,
-        min_step: 1e-14,
-        min_lambda: 1e-12,
-    };
-    damped_pose_fit(init, &rules, normal, |pose| {
+    damped_pose_fit(init, &Rules::default(), normal, |pose| {
         Some(reprojection_cost(camera, local, uv, pose))
     })
 }

@@ -622,12 +622,13 @@ fn refine_body(
             nalgebra::Vector6::from_iterator(g.iter().copied()),
         ))
     };
-    let rules = pnp::PoseFitRules {
+    let rules = rigcal_solve::lm::Rules {
         max_iterations: 20,
         tries: 8,
         rel_decrease: 1e-10,
         min_step: 0.0,
         min_lambda: 1e-9,
+        ..Default::default()
     };
     pnp::damped_pose_fit(init, &rules, normal, |p| {
         residuals(p).map(|r| r.iter().map(|x| x * x).sum::<f64>())

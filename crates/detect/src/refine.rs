@@ -14,6 +14,7 @@
 use super::gray::Gray;
 use rigcal_core::geometry::line2::{distance, fit_line, intersect};
 use rigcal_core::geometry::{normal_cdf, Camera, Vec2, Vec3};
+use rigcal_solve::lm::{minimize, LeastSquares, Rules};
 
 /// Maps between raw pixels and the plane where a tag's sides are straight.
 #[derive(Clone, Copy)]
@@ -160,20 +161,41 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
     }
     // Start: the interpolated crossing, levels from the contrast, σ of a typical lens.
     let mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len() as f64;
-    let mut x = nalgebra::Vector4::new(mean - 0.5 * contrast, contrast, e0, 0.9);
-    let mut lambda = 1e-3;
-    let cost = |x: &nalgebra::Vector4<f64>| -> f64 {
-        samples
-            .iter()
-            .map(|(s, v)| (x[0] + x[1] * normal_cdf((s - x[2]) / x[3]) - v).powi(2))
-            .sum()
-    };
-    let mut current = cost(&x);
-    let mut converged = false;
-    for _ in 0..20 {
+    let init = nalgebra::Vector4::new(mean - 0.5 * contrast, contrast, e0, 0.9);
+    let fit = minimize(&StepProfile(&samples), init, &STEP_FIT)?;
+    let x = fit.point;
+    ((x[2] - e0).abs() < 1.0 && x[1] > 0.0).then_some(x[2])
+}
+
+/// The damping and stopping of the blurred-step fit: a few iterations suffice from the
+/// interpolated crossing; it ends when the edge position settles ([`StepProfile`]).
+const STEP_FIT: Rules = Rules {
+    max_iterations: 20,
+    tries: 8,
+    initial_lambda: 1e-3,
+    raise: 10.0,
+    lower: 0.3,
+    min_lambda: 1e-9,
+    rel_decrease: 0.0,
+    min_step: 0.0,
+    diagonal_floor: 0.0,
+};
+
+/// A blurred step `a + b·Φ((s − e)/σ)` fitted to `(s, grey)` samples across an edge;
+/// parameters `(a, b, e, σ)`, σ kept within (0.2, 4) px (a wider or sharper step is no
+/// lens blur: such a point is refused).
+struct StepProfile<'a>(&'a [(f64, f64)]);
+
+impl LeastSquares<4> for StepProfile<'_> {
+    type Point = nalgebra::Vector4<f64>;
+
+    fn linearize(
+        &self,
+        x: &nalgebra::Vector4<f64>,
+    ) -> Option<(nalgebra::Matrix4<f64>, nalgebra::Vector4<f64>)> {
         let mut jtj = nalgebra::Matrix4::<f64>::zeros();
         let mut jtr = nalgebra::Vector4::<f64>::zeros();
-        for (s, v) in &samples {
+        for (s, v) in self.0 {
             let z = (s - x[2]) / x[3];
             let pdf = (-0.5 * z * z).exp() / (2.0 * std::f64::consts::PI).sqrt();
             let r = x[0] + x[1] * normal_cdf(z) - v;
@@ -186,32 +208,30 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
             jtj += j * j.transpose();
             jtr += j * r;
         }
-        let mut improved = false;
-        for _ in 0..8 {
-            let mut a = jtj;
-            for k in 0..4 {
-                a[(k, k)] *= 1.0 + lambda;
-            }
-            let step = a.lu().solve(&(-jtr))?;
-            let next = x + step;
-            if next[3] > 0.2 && next[3] < 4.0 {
-                let c = cost(&next);
-                if c < current {
-                    converged = step[2].abs() < 1e-5;
-                    x = next;
-                    current = c;
-                    lambda = (lambda * 0.3).max(1e-9);
-                    improved = true;
-                    break;
-                }
-            }
-            lambda *= 10.0;
-        }
-        if !improved || converged {
-            break;
-        }
+        Some((jtj, jtr))
     }
-    ((x[2] - e0).abs() < 1.0 && x[1] > 0.0).then_some(x[2])
+
+    fn cost(&self, x: &nalgebra::Vector4<f64>) -> Option<f64> {
+        (x[3] > 0.2 && x[3] < 4.0).then(|| {
+            self.0
+                .iter()
+                .map(|(s, v)| (x[0] + x[1] * normal_cdf((s - x[2]) / x[3]) - v).powi(2))
+                .sum()
+        })
+    }
+
+    fn retract(
+        &self,
+        x: &nalgebra::Vector4<f64>,
+        step: &nalgebra::Vector4<f64>,
+    ) -> nalgebra::Vector4<f64> {
+        x + step
+    }
+
+    /// The edge position moved less than 10⁻⁵ px.
+    fn settled(&self, step: &nalgebra::Vector4<f64>) -> bool {
+        step[2].abs() < 1e-5
+    }
 }
 
 /// How a polygon's sides are sampled: the fraction of each side kept clear of its
