@@ -14,7 +14,7 @@ at full speed (every PUT as soon as the previous answered) and at a capture-like
 `rigcal calibrate` on the same capture directory (every image detected by the job).
 
 Usage: python3 benches/upload_feedback.py [--bin target/release/rigcal] [--size 1920x1080]
-       [--seed 5] [--pace 0.5] [--postgres URL --s3-bucket B]
+       [--seed 5] [--pace 0.5] [--capture DIR] [--postgres URL --s3-bucket B]
 Standard library only.
 """
 import argparse, json, os, subprocess, tempfile, time
@@ -88,11 +88,14 @@ def main():
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--pace", type=float, default=0.5, help="seconds between frames of the paced run")
+    ap.add_argument("--capture", help="a capture directory rendered before (skips the ~3 min render)")
     add_args(ap)
     a = ap.parse_args()
-    capture = tempfile.mkdtemp(prefix="rigcal-capture-")
-    subprocess.check_call([a.bin, "synth", "--preset", "car-hall", "--images", "--size", a.size,
-                           "--seed", str(a.seed), "--out", capture], stderr=subprocess.DEVNULL)
+    capture = a.capture
+    if not capture:
+        capture = tempfile.mkdtemp(prefix="rigcal-capture-")
+        subprocess.check_call([a.bin, "synth", "--preset", "car-hall", "--images", "--size", a.size,
+                               "--seed", str(a.seed), "--out", capture], stderr=subprocess.DEVNULL)
     print(f"car-hall {a.size}, seed {a.seed}, 72 JPEGs; {describe(a)}; 1 embedded worker, {os.cpu_count()} cores")
     t = time.monotonic()
     out = subprocess.run([a.bin, "calibrate", os.path.join(capture, "session.json")],

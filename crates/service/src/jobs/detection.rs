@@ -7,6 +7,7 @@
 use crate::store::blob::BlobStore;
 use crate::store::detections::{DetectionTask, StoredDetection};
 use crate::store::Store;
+use futures::stream::{FuturesUnordered, StreamExt};
 use rigcal_calib::check::capture_check;
 use rigcal_core::session::{parse_session, ImageSlot, Session};
 use rigcal_engine::pipeline::detection::{
@@ -16,6 +17,7 @@ use rigcal_engine::pipeline::detection::{
 use rigcal_engine::pipeline::ImageSource;
 use serde_json::json;
 use std::collections::{HashMap, HashSet};
+use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 /// A session's uploaded images, read from the blob store by (camera, frame), with the
@@ -28,23 +30,34 @@ pub struct BlobSource {
 }
 
 impl BlobSource {
-    /// The source of `session_id`'s images, with its reusable detections.
-    pub async fn of(store: &Store, session_id: &str, max_pixels: u64) -> sqlx::Result<Self> {
+    /// The source of `session_id`'s images, with its reusable detections: those of an
+    /// image whose bytes are still stored (a lost image fails the job `input_missing`
+    /// as it would without a kept detection: the job's bundle must be able to replay it).
+    pub async fn of(store: &Store, session_id: &str, max_pixels: u64) -> Result<Self, String> {
         let by_slot: HashMap<(String, i64), String> = store
             .images(session_id)
-            .await?
+            .await
+            .map_err(|e| e.to_string())?
             .into_iter()
             .map(|r| ((r.camera, r.frame), r.sha256))
             .collect();
-        let detected = store
+        let mut detected = HashMap::new();
+        for d in store
             .detections(session_id)
-            .await?
-            .into_iter()
-            .filter_map(|d| {
-                let key = (d.camera.clone(), d.frame);
-                reusable(&d, by_slot.get(&key)?).map(|o| (key, o))
-            })
-            .collect();
+            .await
+            .map_err(|e| e.to_string())?
+        {
+            let key = (d.camera.clone(), d.frame);
+            let Some(sha) = by_slot.get(&key) else {
+                continue;
+            };
+            let Some(outcome) = reusable(&d, sha) else {
+                continue;
+            };
+            if store.blobs.contains(sha).await.map_err(|e| e.to_string())? {
+                detected.insert(key, outcome);
+            }
+        }
         Ok(BlobSource {
             blobs: store.blobs.clone(),
             max_pixels,
@@ -146,10 +159,11 @@ impl Refreshes {
     }
 }
 
-/// Claim up to `limit` pending image detections and run them in parallel; record each
-/// outcome and recompute the capture checks that are due (see [`Refreshes`]). Returns
-/// how many were claimed (0: nothing to do; the checks still behind are brought up to
-/// date then).
+/// Detect pending uploaded images, up to `limit` at once on blocking threads, claiming
+/// the next as soon as one ends (so no core waits for the slowest image of a batch),
+/// until none is pending; record each outcome and recompute the capture checks that are
+/// due (see [`Refreshes`]). Returns how many were detected (0: nothing to do; the
+/// checks still behind are brought up to date then).
 pub async fn run_batch(
     name: &str,
     store: &Store,
@@ -158,117 +172,115 @@ pub async fn run_batch(
     max_pixels: u64,
     refreshes: &mut Refreshes,
 ) -> sqlx::Result<usize> {
-    let tasks = store.claim_detections(name, lease_ms, limit as i64).await?;
-    if tasks.is_empty() {
-        refreshes.run(store, true).await?;
-        return Ok(0);
-    }
-    // Each task's session, parsed once per batch.
-    let mut sessions: HashMap<String, Result<Session, String>> = HashMap::new();
-    for t in &tasks {
-        if sessions.contains_key(&t.session_id) {
-            continue;
+    // Each session parsed once while its images are being detected.
+    let mut sessions: HashMap<String, Result<Arc<Session>, String>> = HashMap::new();
+    let mut running = FuturesUnordered::new();
+    let mut done = 0;
+    let mut drained = false;
+    loop {
+        while !drained && running.len() < limit {
+            let Some(task) = store.claim_detections(name, lease_ms, 1).await?.pop() else {
+                drained = true;
+                break;
+            };
+            if !sessions.contains_key(&task.session_id) {
+                let parsed = load_session(store, &task.session_id).await?;
+                sessions.insert(task.session_id.clone(), parsed);
+            }
+            let session = sessions[&task.session_id].clone();
+            let blobs = store.blobs.clone();
+            running.push(async move {
+                let t = task.clone();
+                let outcome = tokio::task::spawn_blocking(move || {
+                    detect_one(&t, session, &blobs, max_pixels)
+                })
+                .await
+                .unwrap_or_else(|e| Err(format!("internal error: the detection task failed: {e}")));
+                (task, outcome)
+            });
         }
-        let parsed = match store.session_by_id(&t.session_id).await? {
-            Some(row) => parse_session(row.manifest.as_bytes()).map_err(|e| {
-                format!(
-                    "internal error: the stored session no longer validates ({}: {})",
-                    e.field, e.expected
-                )
-            }),
-            None => Err("internal error: the image's session no longer exists".into()),
+        let Some((task, outcome)) = running.next().await else {
+            break;
         };
-        sessions.insert(t.session_id.clone(), parsed);
-    }
-    let blobs = store.blobs.clone();
-    let work: Vec<(DetectionTask, Result<Session, String>)> = tasks
-        .iter()
-        .map(|t| (t.clone(), sessions[&t.session_id].clone()))
-        .collect();
-    let outcomes = tokio::task::spawn_blocking(move || detect_all(&work, &blobs, max_pixels))
-        .await
-        .unwrap_or_else(|e| {
-            vec![Err(format!("internal error: the detection task failed: {e}")); tasks.len()]
-        });
-    for (task, outcome) in tasks.iter().zip(outcomes) {
+        done += 1;
         let (doc, event) = match &outcome {
             Ok(d) => match serde_json::to_string(d) {
-                Ok(doc) => (Ok(doc), image_event(task, Some(d), None)),
+                Ok(doc) => (Ok(doc), image_event(&task, Some(d), None)),
                 Err(e) => {
                     let why = format!("internal error: the outcome did not serialise: {e}");
-                    let ev = image_event(task, None, Some(&why));
+                    let ev = image_event(&task, None, Some(&why));
                     (Err(why), ev)
                 }
             },
-            Err(why) => (Err(why.clone()), image_event(task, None, Some(why))),
+            Err(why) => (Err(why.clone()), image_event(&task, None, Some(why))),
         };
         if let Err(why) = &doc {
             tracing::warn!(session = %task.session_id, camera = %task.camera, frame = task.frame, attempt = task.attempts, "detection at upload gave no outcome: {why}");
         }
         let doc = doc.as_deref().map_err(String::as_str);
         if store
-            .finish_detection(task, name, DETECTOR_VERSION, doc, &event)
+            .finish_detection(&task, name, DETECTOR_VERSION, doc, &event)
             .await?
             && sessions[&task.session_id].is_ok()
         {
             refreshes.behind.insert(task.session_id.clone());
         }
+        // The images still running go on on their threads while a check is computed.
+        refreshes.run(store, false).await?;
     }
-    refreshes.run(store, false).await?;
-    Ok(tasks.len())
+    if done == 0 {
+        refreshes.run(store, true).await?;
+    }
+    Ok(done)
 }
 
-/// Detect every task's image, over the cores. An outcome is `Err` when the image gave
-/// no outcome to keep: its bytes could not be read, its session is unusable, or the
-/// detector panicked (each retried by another claim, up to the attempt limit).
-fn detect_all(
-    work: &[(DetectionTask, Result<Session, String>)],
+async fn load_session(store: &Store, id: &str) -> sqlx::Result<Result<Arc<Session>, String>> {
+    Ok(match store.session_by_id(id).await? {
+        Some(row) => parse_session(row.manifest.as_bytes())
+            .map(Arc::new)
+            .map_err(|e| {
+                format!(
+                    "internal error: the stored session no longer validates ({}: {})",
+                    e.field, e.expected
+                )
+            }),
+        None => Err("internal error: the image's session no longer exists".into()),
+    })
+}
+
+/// Detect one task's image. `Err` when the image gave no outcome to keep: its bytes
+/// could not be read, its session is unusable, or the detector panicked (each retried
+/// by another claim, up to the attempt limit).
+fn detect_one(
+    task: &DetectionTask,
+    session: Result<Arc<Session>, String>,
     blobs: &BlobStore,
     max_pixels: u64,
-) -> Vec<Result<ImageDetection, String>> {
-    std::thread::scope(|s| {
-        let handles: Vec<_> = work
-            .iter()
-            .map(|(task, session)| {
-                s.spawn(move || {
-                    let session = session.as_ref().map_err(Clone::clone)?;
-                    let slot = awaiting_detection(session)
-                        .into_iter()
-                        .find(|s| s.camera == task.camera && s.frame == task.frame)
-                        .ok_or_else(|| {
-                            format!(
-                                "internal error: camera {} frame {} is not an image awaiting detection in its session",
-                                task.camera, task.frame
-                            )
-                        })?;
-                    let source = BlobSource {
-                        blobs: blobs.clone(),
-                        max_pixels,
-                        by_slot: HashMap::from([(
-                            (task.camera.clone(), task.frame),
-                            task.sha256.clone(),
-                        )]),
-                        detected: HashMap::new(),
-                    };
-                    let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-                        detect_image(session, &slot, &source)
-                    }))
-                    .map_err(|_| "internal error: the detector panicked on this image".to_string())?;
-                    if out.unreadable() {
-                        return Err(out.report.error.clone().unwrap_or_default());
-                    }
-                    Ok(out)
-                })
-            })
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| {
-                h.join()
-                    .unwrap_or_else(|_| Err("internal error: a detection thread panicked".into()))
-            })
-            .collect()
-    })
+) -> Result<ImageDetection, String> {
+    let session = session?;
+    let slot = awaiting_detection(&session)
+        .into_iter()
+        .find(|s| s.camera == task.camera && s.frame == task.frame)
+        .ok_or_else(|| {
+            format!(
+                "internal error: camera {} frame {} is not an image awaiting detection in its session",
+                task.camera, task.frame
+            )
+        })?;
+    let source = BlobSource {
+        blobs: blobs.clone(),
+        max_pixels,
+        by_slot: HashMap::from([((task.camera.clone(), task.frame), task.sha256.clone())]),
+        detected: HashMap::new(),
+    };
+    let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        detect_image(&session, &slot, &source)
+    }))
+    .map_err(|_| "internal error: the detector panicked on this image".to_string())?;
+    if out.unreadable() {
+        return Err(out.report.error.clone().unwrap_or_default());
+    }
+    Ok(out)
 }
 
 fn image_event(
