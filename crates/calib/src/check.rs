@@ -91,6 +91,27 @@ fn height_connected(session: &Session, traj: &Trajectories) -> BTreeSet<usize> {
     }
 }
 
+impl CaptureCheck {
+    /// The check that could not be computed for a fault of ours (`message` names the
+    /// stage): `insufficient` with an `internal_error` reason, so it is reported as
+    /// what it is rather than as a verdict on the capture or not at all.
+    pub fn internal_error(message: String) -> CaptureCheck {
+        CaptureCheck {
+            verdict: "insufficient".into(),
+            reasons: vec![reason(ReasonCode::InternalError, message, None)],
+            recommendations: vec![
+                "this is a fault of rigcal, not of the capture: report it; a job detects the images again itself".into(),
+            ],
+            cameras: vec![],
+            motion: None,
+            scene_permutation: false,
+            non_planar_motion: false,
+            ring_closed: None,
+            seconds: 0.0,
+        }
+    }
+}
+
 /// Run the capture check. Never panics on input; a session without usable detections
 /// gets `insufficient` with the reason.
 pub fn capture_check(session: &Session) -> CaptureCheck {

@@ -438,7 +438,9 @@ pub async fn check(
     let expected = awaiting_detection(&session).len();
     let counts = state.store.detection_counts(&row.id).await?;
     let received = counts.queued as usize;
-    let detail = if expected == 0 {
+    let detail = if expected == 0 && !image_slots(&session).is_empty() {
+        "the capture check runs on detections; this session's images show targets this build does not detect (it detects AprilTag, AprilGrid and line targets)".to_string()
+    } else if expected == 0 {
         "the capture check runs on detections; this session has none and no image to detect"
             .to_string()
     } else {

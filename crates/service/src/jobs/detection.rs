@@ -8,7 +8,7 @@ use crate::store::blob::BlobStore;
 use crate::store::detections::{DetectionTask, StoredDetection};
 use crate::store::Store;
 use futures::stream::{FuturesUnordered, StreamExt};
-use rigcal_calib::check::capture_check;
+use rigcal_calib::check::{capture_check, CaptureCheck};
 use rigcal_core::session::{parse_session, ImageSlot, Session};
 use rigcal_engine::pipeline::detection::{
     awaiting_detection, detect_image, merge_detections, DetectionFailure, ImageDetection,
@@ -308,7 +308,9 @@ fn image_event(
 }
 
 /// Recompute `session`'s capture check over the detections stored so far and store it
-/// (with its `check` event) unless a fuller one is there already.
+/// (with its `check` event) unless a fuller one is there already. A check that cannot be
+/// computed (a bug of ours) is stored as such: `insufficient` with an `internal_error`
+/// reason naming the stage, never left silently behind its detections.
 pub async fn refresh_check(store: &Store, session_id: &str, session: Session) -> sqlx::Result<()> {
     let images: HashMap<(String, i64), String> = store
         .images(session_id)
@@ -317,7 +319,7 @@ pub async fn refresh_check(store: &Store, session_id: &str, session: Session) ->
         .map(|r| ((r.camera, r.frame), r.sha256))
         .collect();
     let stored = store.detections(session_id).await?;
-    let outcome = tokio::task::spawn_blocking(move || -> Result<(serde_json::Value, i64, i64), String> {
+    let outcome = tokio::task::spawn_blocking(move || {
         let awaiting = awaiting_detection(&session);
         let expected = awaiting.len() as i64;
         let outcomes: Vec<(ImageSlot, ImageDetection)> = awaiting
@@ -337,38 +339,24 @@ pub async fn refresh_check(store: &Store, session_id: &str, session: Session) ->
             })
             .collect();
         let detected = outcomes.len() as i64;
-        let merged = match merge_detections(&session, outcomes) {
-            Ok((merged, _)) => merged,
-            Err(DetectionFailure::Inconsistent { field, expected, .. }) => {
-                return Err(format!(
-                    "internal error: the detections at upload do not make a valid session ({field}: expected {expected})"
-                ))
-            }
-            Err(DetectionFailure::InputMissing { images, .. }) => {
-                return Err(format!(
-                    "internal error: a kept detection is of an unreadable image ({})",
-                    images.first().map_or("", |i| i.0.as_str())
-                ))
-            }
-            Err(DetectionFailure::Cancelled(_)) => {
-                return Err("internal error: merging detections was cancelled".into())
-            }
-        };
-        let check = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| capture_check(&merged)))
-            .map_err(|_| "internal error: the capture check panicked".to_string())?;
-        let check = serde_json::to_value(&check)
-            .map_err(|e| format!("internal error: the capture check did not serialise: {e}"))?;
-        Ok((check, expected, detected))
+        (check_of(&session, outcomes), expected, detected)
     })
     .await;
     let (check, expected, detected) = match outcome {
-        Ok(Ok(x)) => x,
-        Ok(Err(why)) => {
-            tracing::error!(session = %session_id, "{why}");
-            return Ok(());
-        }
+        Ok(x) => x,
         Err(e) => {
             tracing::error!(session = %session_id, "internal error: the capture check task failed: {e}");
+            return Ok(());
+        }
+    };
+    let check = check.unwrap_or_else(|why| {
+        tracing::error!(session = %session_id, "{why}");
+        CaptureCheck::internal_error(why)
+    });
+    let check = match serde_json::to_value(&check) {
+        Ok(v) => v,
+        Err(e) => {
+            tracing::error!(session = %session_id, "internal error: the capture check did not serialise: {e}");
             return Ok(());
         }
     };
@@ -383,4 +371,31 @@ pub async fn refresh_check(store: &Store, session_id: &str, session: Session) ->
         .store_check(session_id, &text, detected, expected, &event)
         .await?;
     Ok(())
+}
+
+/// The capture check of `session` with `outcomes` merged in; `Err` (an internal error,
+/// with the stage that failed) when they do not make a valid session or the check fails.
+fn check_of(
+    session: &Session,
+    outcomes: Vec<(ImageSlot, ImageDetection)>,
+) -> Result<CaptureCheck, String> {
+    let merged = match merge_detections(session, outcomes) {
+        Ok((merged, _)) => merged,
+        Err(DetectionFailure::Inconsistent { field, expected, .. }) => {
+            return Err(format!(
+                "internal error in the detection at upload: its detections do not make a valid session ({field}: expected {expected})"
+            ))
+        }
+        Err(DetectionFailure::InputMissing { images, .. }) => {
+            return Err(format!(
+                "internal error in the detection at upload: a kept detection is of an unreadable image ({})",
+                images.first().map_or("", |i| i.0.as_str())
+            ))
+        }
+        Err(DetectionFailure::Cancelled(_)) => {
+            return Err("internal error in the detection at upload: the merge was cancelled".into())
+        }
+    };
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| capture_check(&merged)))
+        .map_err(|_| "internal error in the capture check: it panicked".to_string())
 }
