@@ -88,6 +88,17 @@ async fn put_image(c: &reqwest::Client, s: &Server, sid: &str, cam: &str, frame:
     assert_eq!(r.status(), 200, "{}", r.text().await.unwrap());
 }
 
+/// `GET /check` is 409 `check-not-ready`, its detail starting with `detail`.
+async fn check_not_ready(c: &reqwest::Client, s: &Server, sid: &str, detail: &str) {
+    let r = c
+        .get(s.url(&format!("/v1/sessions/{sid}/check")))
+        .send()
+        .await
+        .unwrap();
+    let p = expect_problem(r, 409, "check-not-ready").await;
+    assert!(p["detail"].as_str().unwrap().starts_with(detail), "{p}");
+}
+
 /// What the check must say: the capture check of the session as the detection stage
 /// detects it from the same bytes.
 fn expected_check(manifest: &Value, images: &HashMap<String, Vec<u8>>) -> Value {
@@ -166,19 +177,7 @@ async fn images_are_detected_as_they_arrive_and_the_check_and_the_job_follow() {
     assert_eq!(sess["images_to_detect"], 72, "{sess}");
     assert_eq!(sess["images_detected"], 0, "{sess}");
     assert_eq!(sess["capture_check"], Value::Null);
-    let r = c
-        .get(s.url(&format!("/v1/sessions/{sid}/check")))
-        .send()
-        .await
-        .unwrap();
-    let p = expect_problem(r, 409, "check-not-ready").await;
-    assert!(
-        p["detail"]
-            .as_str()
-            .unwrap()
-            .starts_with("0 of 72 images detected"),
-        "{p}"
-    );
+    check_not_ready(&c, &s, &sid, "0 of 72 images detected").await;
     // A cursor this server never sent is refused, naming the header.
     let r = c
         .get(s.url(&format!("/v1/sessions/{sid}/events")))
@@ -229,19 +228,7 @@ async fn images_are_detected_as_they_arrive_and_the_check_and_the_job_follow() {
         }
     }
     assert_eq!(seen.len(), half);
-    let r = c
-        .get(s.url(&format!("/v1/sessions/{sid}/check")))
-        .send()
-        .await
-        .unwrap();
-    let p = expect_problem(r, 409, "check-not-ready").await;
-    assert!(
-        p["detail"]
-            .as_str()
-            .unwrap()
-            .starts_with("36 of 72 images detected (36 of 72 received)"),
-        "{p}"
-    );
+    check_not_ready(&c, &s, &sid, "36 of 72 images detected (36 of 72 received)").await;
     let v = get_json(&c, &s, &format!("/v1/sessions/{sid}")).await;
     assert_eq!(v["images_detected"], 36, "{v}");
     assert_eq!(v["capture_check_complete"], false, "{v}");

@@ -114,3 +114,77 @@ impl Drop for StreamSlot {
         }
     }
 }
+
+/// One stored event of a resource's stream (a job's, a session's).
+pub trait StreamEvent: serde::Serialize {
+    fn id(&self) -> i64;
+    fn kind(&self) -> &str;
+    /// The resource's last event: its stream ends after it.
+    fn ends_stream(&self) -> bool;
+}
+
+impl StreamEvent for crate::jobs::queue::EventRow {
+    fn id(&self) -> i64 {
+        self.id
+    }
+    fn kind(&self) -> &str {
+        &self.kind
+    }
+    /// The job's terminal status.
+    fn ends_stream(&self) -> bool {
+        use crate::jobs::queue::JobStatus;
+        self.kind == "status" && JobStatus::parse(&self.status).is_some_and(JobStatus::is_terminal)
+    }
+}
+
+impl StreamEvent for crate::store::detections::SessionEvent {
+    fn id(&self) -> i64 {
+        self.id
+    }
+    fn kind(&self) -> &str {
+        &self.kind
+    }
+    /// The complete capture check.
+    fn ends_stream(&self) -> bool {
+        self.kind == "check" && self.data["complete"] == serde_json::Value::Bool(true)
+    }
+}
+
+/// A resource's events as server-sent events: those stored after `last` (`fetch(last)`),
+/// then each as it is stored, until one [`ends_stream`](StreamEvent::ends_stream),
+/// `finished(last)` says the resource ended before the stream began (its last event
+/// already sent), or the server shuts down.
+pub fn follow<E, Fetch, FetchFut, Done, DoneFut>(
+    mut slot: StreamSlot,
+    mut shutdown: watch::Receiver<bool>,
+    mut last: i64,
+    fetch: Fetch,
+    finished: Done,
+) -> impl futures::Stream<Item = Result<axum::response::sse::Event, std::convert::Infallible>>
+where
+    E: StreamEvent,
+    Fetch: Fn(i64) -> FetchFut,
+    FetchFut: std::future::Future<Output = sqlx::Result<Vec<E>>>,
+    Done: Fn(i64) -> DoneFut,
+    DoneFut: std::future::Future<Output = bool>,
+{
+    async_stream::stream! {
+        loop {
+            let Ok(events) = fetch(last).await else { break };
+            let mut ended = false;
+            for e in events {
+                last = e.id();
+                ended |= e.ends_stream();
+                let data = serde_json::to_string(&e).unwrap_or_default();
+                yield Ok(axum::response::sse::Event::default().id(last.to_string()).event(e.kind()).data(data));
+            }
+            if ended || *shutdown.borrow() || finished(last).await {
+                break;
+            }
+            tokio::select! {
+                _ = slot.changed() => {},
+                _ = shutdown.changed() => {},
+            }
+        }
+    }
+}

@@ -423,42 +423,28 @@ pub async fn events(
     headers: HeaderMap,
 ) -> Result<Sse<impl Stream<Item = Result<Event, Infallible>>>, ApiError> {
     job_or_404(&state, &tenant.id, &id).await?;
-    let mut last: i64 = resume_after(&state, &headers).await?.unwrap_or(0);
-    let mut slot = state.events.open(&tenant.id)?;
+    let last: i64 = resume_after(&state, &headers).await?.unwrap_or(0);
+    let slot = state.events.open(&tenant.id)?;
     let queue = state.queue.clone();
-    let mut shutdown = state.shutdown.clone();
-    let stream = async_stream::stream! {
-        loop {
-            let events = match queue.events_after(&id, last).await {
-                Ok(e) => e,
-                Err(_) => break,
-            };
-            let mut ended = false;
-            for e in events {
-                last = e.id;
-                let terminal = e.kind == "status" && JobStatus::parse(&e.status).is_some_and(JobStatus::is_terminal);
-                let data = serde_json::to_string(&e).unwrap_or_default();
-                yield Ok(Event::default().id(e.id.to_string()).event(e.kind.clone()).data(data));
-                ended |= terminal;
-            }
-            if ended {
-                break;
-            }
-            // A job finished before we subscribed (its terminal event already sent earlier).
-            if let Ok(Some(j)) = queue.get(&id).await {
-                if j.is_terminal() && queue.events_after(&id, last).await.map(|e| e.is_empty()).unwrap_or(true) {
-                    break;
-                }
-            }
-            if *shutdown.borrow() {
-                break;
-            }
-            tokio::select! {
-                _ = slot.changed() => {},
-                _ = shutdown.changed() => {},
-            }
+    let fetch = {
+        let (queue, id) = (queue.clone(), id.clone());
+        move |after: i64| {
+            let (queue, id) = (queue.clone(), id.clone());
+            async move { queue.events_after(&id, after).await }
         }
     };
+    // A job that finished before the stream began: its terminal event was sent already.
+    let finished = move |after: i64| {
+        let (queue, id) = (queue.clone(), id.clone());
+        async move {
+            matches!(queue.get(&id).await, Ok(Some(j)) if j.is_terminal())
+                && queue
+                    .events_after(&id, after)
+                    .await
+                    .is_ok_and(|e| e.is_empty())
+        }
+    };
+    let stream = super::events::follow(slot, state.shutdown.clone(), last, fetch, finished);
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 

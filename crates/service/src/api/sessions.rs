@@ -471,38 +471,29 @@ pub async fn events(
     let session = stored_session(&row)?;
     let nothing_to_detect = awaiting_detection(&session).is_empty();
     let latest = state.store.last_session_event_id().await?;
-    let mut last = super::jobs::last_event_id(&headers, latest)?.unwrap_or(0);
-    let mut slot = state.events.open(&tenant.id)?;
+    let last = super::jobs::last_event_id(&headers, latest)?.unwrap_or(0);
+    let slot = state.events.open(&tenant.id)?;
     let store = state.store.clone();
-    let mut shutdown = state.shutdown.clone();
-    let stream = async_stream::stream! {
-        loop {
-            let Ok(events) = store.session_events_after(&id, last).await else { break };
-            let mut ended = false;
-            for e in events {
-                last = e.id;
-                ended |= e.kind == "check" && e.data["complete"] == json!(true);
-                let data = serde_json::to_string(&e).unwrap_or_default();
-                yield Ok(Event::default().id(e.id.to_string()).event(e.kind.clone()).data(data));
-            }
-            if ended || nothing_to_detect {
-                break;
-            }
-            // Complete before we subscribed, its events already sent earlier.
-            if let Ok(Some(r)) = store.session_by_id(&id).await {
-                if check_complete(&r) && store.session_events_after(&id, last).await.is_ok_and(|e| e.is_empty()) {
-                    break;
-                }
-            }
-            if *shutdown.borrow() {
-                break;
-            }
-            tokio::select! {
-                _ = slot.changed() => {},
-                _ = shutdown.changed() => {},
-            }
+    let fetch = {
+        let (store, id) = (store.clone(), id.clone());
+        move |after: i64| {
+            let (store, id) = (store.clone(), id.clone());
+            async move { store.session_events_after(&id, after).await }
         }
     };
+    // Nothing to detect, or complete before the stream began (its events sent already).
+    let finished = move |after: i64| {
+        let (store, id) = (store.clone(), id.clone());
+        async move {
+            nothing_to_detect
+                || matches!(store.session_by_id(&id).await, Ok(Some(r)) if check_complete(&r))
+                    && store
+                        .session_events_after(&id, after)
+                        .await
+                        .is_ok_and(|e| e.is_empty())
+        }
+    };
+    let stream = super::events::follow(slot, state.shutdown.clone(), last, fetch, finished);
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
 }
 
