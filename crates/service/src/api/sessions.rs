@@ -435,10 +435,23 @@ pub async fn check(
         ));
     }
     let session = stored_session(&row)?;
-    let expected = awaiting_detection(&session).len();
+    let awaiting = to_detect(&session);
+    let expected = awaiting.len();
     let counts = state.store.detection_counts(&row.id).await?;
-    let received = counts.queued as usize;
-    let detail = if expected == 0 && !image_slots(&session).is_empty() {
+    let received = state
+        .store
+        .images(&row.id)
+        .await?
+        .into_iter()
+        .filter(|i| awaiting.contains(&(i.camera.clone(), i.frame)))
+        .count();
+    let detail = if received > counts.queued as usize {
+        // Stored before this service detected images at upload (migration 0007).
+        format!(
+            "{} of the {expected} images awaiting detection were uploaded before images were detected at upload; the session's job detects them, and the check is not computed for this session",
+            received - counts.queued as usize
+        )
+    } else if expected == 0 && !image_slots(&session).is_empty() {
         "the capture check runs on detections; this session's images show targets this build does not detect (it detects AprilTag, AprilGrid and line targets)".to_string()
     } else if expected == 0 {
         "the capture check runs on detections; this session has none and no image to detect"
