@@ -11,6 +11,7 @@ use crate::jobs::queue::Queue;
 use crate::store::Store;
 use axum::http::StatusCode;
 use std::collections::HashMap;
+use std::future::Future;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::sync::watch;
@@ -150,27 +151,28 @@ impl StreamEvent for crate::store::detections::SessionEvent {
     }
 }
 
-/// A resource's events as server-sent events: those stored after `last` (`fetch(last)`),
-/// then each as it is stored, until one [`ends_stream`](StreamEvent::ends_stream),
-/// `finished(last)` says the resource ended before the stream began (its last event
-/// already sent), or the server shuts down.
-pub fn follow<E, Fetch, FetchFut, Done, DoneFut>(
+/// Where a stream reads one resource's events (a job's, a session's).
+pub trait EventSource {
+    type Event: StreamEvent;
+    /// The resource's events stored after `last`, oldest first.
+    fn after(&self, last: i64) -> impl Future<Output = sqlx::Result<Vec<Self::Event>>> + Send;
+    /// Whether the resource has ended (its last event is stored).
+    fn ended(&self) -> impl Future<Output = bool> + Send;
+}
+
+/// A resource's events as server-sent events: those stored after `last`, then each as
+/// it is stored, until one [`ends_stream`](StreamEvent::ends_stream), the resource
+/// turns out to have ended before the stream began (nothing left after `last`), or the
+/// server shuts down.
+pub fn follow<S: EventSource>(
     mut slot: StreamSlot,
     mut shutdown: watch::Receiver<bool>,
     mut last: i64,
-    fetch: Fetch,
-    finished: Done,
-) -> impl futures::Stream<Item = Result<axum::response::sse::Event, std::convert::Infallible>>
-where
-    E: StreamEvent,
-    Fetch: Fn(i64) -> FetchFut,
-    FetchFut: std::future::Future<Output = sqlx::Result<Vec<E>>>,
-    Done: Fn(i64) -> DoneFut,
-    DoneFut: std::future::Future<Output = bool>,
-{
+    source: S,
+) -> impl futures::Stream<Item = Result<axum::response::sse::Event, std::convert::Infallible>> {
     async_stream::stream! {
         loop {
-            let Ok(events) = fetch(last).await else { break };
+            let Ok(events) = source.after(last).await else { break };
             let mut ended = false;
             for e in events {
                 last = e.id();
@@ -178,7 +180,11 @@ where
                 let data = serde_json::to_string(&e).unwrap_or_default();
                 yield Ok(axum::response::sse::Event::default().id(last.to_string()).event(e.kind()).data(data));
             }
-            if ended || *shutdown.borrow() || finished(last).await {
+            if ended || *shutdown.borrow() {
+                break;
+            }
+            // Ended before we subscribed: its last event was sent already.
+            if source.ended().await && source.after(last).await.is_ok_and(|e| e.is_empty()) {
                 break;
             }
             tokio::select! {

@@ -425,27 +425,28 @@ pub async fn events(
     job_or_404(&state, &tenant.id, &id).await?;
     let last: i64 = resume_after(&state, &headers).await?.unwrap_or(0);
     let slot = state.events.open(&tenant.id)?;
-    let queue = state.queue.clone();
-    let fetch = {
-        let (queue, id) = (queue.clone(), id.clone());
-        move |after: i64| {
-            let (queue, id) = (queue.clone(), id.clone());
-            async move { queue.events_after(&id, after).await }
-        }
+    let source = JobEvents {
+        queue: state.queue.clone(),
+        id,
     };
-    // A job that finished before the stream began: its terminal event was sent already.
-    let finished = move |after: i64| {
-        let (queue, id) = (queue.clone(), id.clone());
-        async move {
-            matches!(queue.get(&id).await, Ok(Some(j)) if j.is_terminal())
-                && queue
-                    .events_after(&id, after)
-                    .await
-                    .is_ok_and(|e| e.is_empty())
-        }
-    };
-    let stream = super::events::follow(slot, state.shutdown.clone(), last, fetch, finished);
+    let stream = super::events::follow(slot, state.shutdown.clone(), last, source);
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+}
+
+/// A job's events; it has ended once its status is terminal.
+struct JobEvents {
+    queue: crate::jobs::queue::Queue,
+    id: String,
+}
+
+impl super::events::EventSource for JobEvents {
+    type Event = crate::jobs::queue::EventRow;
+    async fn after(&self, last: i64) -> sqlx::Result<Vec<Self::Event>> {
+        self.queue.events_after(&self.id, last).await
+    }
+    async fn ended(&self) -> bool {
+        matches!(self.queue.get(&self.id).await, Ok(Some(j)) if j.is_terminal())
+    }
 }
 
 /// `GET /v1/events`: server-sent events of every job of the tenant (`job` events: the

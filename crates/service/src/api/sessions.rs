@@ -486,28 +486,32 @@ pub async fn events(
     let latest = state.store.last_session_event_id().await?;
     let last = super::jobs::last_event_id(&headers, latest)?.unwrap_or(0);
     let slot = state.events.open(&tenant.id)?;
-    let store = state.store.clone();
-    let fetch = {
-        let (store, id) = (store.clone(), id.clone());
-        move |after: i64| {
-            let (store, id) = (store.clone(), id.clone());
-            async move { store.session_events_after(&id, after).await }
-        }
+    let source = SessionEvents {
+        store: state.store.clone(),
+        id,
+        nothing_to_detect,
     };
-    // Nothing to detect, or complete before the stream began (its events sent already).
-    let finished = move |after: i64| {
-        let (store, id) = (store.clone(), id.clone());
-        async move {
-            nothing_to_detect
-                || matches!(store.session_by_id(&id).await, Ok(Some(r)) if check_complete(&r))
-                    && store
-                        .session_events_after(&id, after)
-                        .await
-                        .is_ok_and(|e| e.is_empty())
-        }
-    };
-    let stream = super::events::follow(slot, state.shutdown.clone(), last, fetch, finished);
+    let stream = super::events::follow(slot, state.shutdown.clone(), last, source);
     Ok(Sse::new(stream).keep_alive(KeepAlive::new().interval(Duration::from_secs(15))))
+}
+
+/// A session's detection events; it has ended once its check is complete (at once
+/// when it has nothing to detect).
+struct SessionEvents {
+    store: Store,
+    id: String,
+    nothing_to_detect: bool,
+}
+
+impl super::events::EventSource for SessionEvents {
+    type Event = crate::store::detections::SessionEvent;
+    async fn after(&self, last: i64) -> sqlx::Result<Vec<Self::Event>> {
+        self.store.session_events_after(&self.id, last).await
+    }
+    async fn ended(&self) -> bool {
+        self.nothing_to_detect
+            || matches!(self.store.session_by_id(&self.id).await, Ok(Some(r)) if check_complete(&r))
+    }
 }
 
 /// `PUT /v1/sessions/{id}/images/{camera}/{frame}`: one image, idempotent.
