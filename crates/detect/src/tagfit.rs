@@ -17,7 +17,7 @@
 
 use super::gray::Gray;
 use super::refine::Lens;
-use nalgebra::{DMatrix, DVector, SMatrix, SVector};
+use nalgebra::{DVector, SMatrix, SVector};
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::{normal_cdf, Mat3, Vec2, Vec3};
 use rigcal_core::target::board::cell_white;
@@ -192,6 +192,8 @@ struct Region {
     plane: Vec<Vec2>,
     /// The compared pixels.
     pixels: Vec<Compared>,
+    /// Per pixel row of the region, the columns `[lo, hi)` its compared pixels span.
+    row_spans: Vec<(usize, usize)>,
     /// The tag's mean cell size (px) at the start: it sets the sharp pattern's smoothing
     /// (one sub-sample), held through the fit so that only the corners move the model.
     cell_px: f64,
@@ -272,12 +274,22 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
         let dqy = ((c - a) * (1.0 - fx) + (d - b) * fx) / COARSE as f64;
         (q, nalgebra::Matrix2::new(dqx.x, dqy.x, dqx.y, dqy.y))
     };
+    // The sub-samples row by row, as `plane_at` (to rounding): along a row the bilinear
+    // map is linear between the coarse grid's columns, interpolated once per row.
     let (sw, sh) = (w * sub_n, hgt * sub_n);
     let mut sub = Vec::with_capacity(sw * sh);
+    let mut at_row = vec![Vec2::zeros(); gw];
     for r in 0..sh {
-        let y = (r as f64 + 0.5) / sub_n as f64;
+        let gy = (r as f64 + 0.5) / sub_n as f64 / COARSE as f64;
+        let j = (gy as usize).min(gh - 2);
+        let fy = gy - j as f64;
+        for (i, q) in at_row.iter_mut().enumerate() {
+            *q = grid[j * gw + i] * (1.0 - fy) + grid[(j + 1) * gw + i] * fy;
+        }
         for c in 0..sw {
-            sub.push(plane_at((c as f64 + 0.5) / sub_n as f64, y).0);
+            let gx = (c as f64 + 0.5) / sub_n as f64 / COARSE as f64;
+            let i = (gx as usize).min(gw - 2);
+            sub.push(at_row[i] + (at_row[i + 1] - at_row[i]) * (gx - i as f64));
         }
     }
     let (cx, cy) = (0.5 * w as f64, 0.5 * hgt as f64);
@@ -305,12 +317,19 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
         .map(|k| (corners[(k + 1) % 4] - corners[k]).norm())
         .sum::<f64>()
         / 32.0;
+    let mut row_spans = vec![(usize::MAX, 0usize); hgt];
+    for px in &pixels {
+        let (ci, rj) = (px.idx % w, px.idx / w);
+        let span = &mut row_spans[rj];
+        *span = (span.0.min(ci), span.1.max(ci + 1));
+    }
     Some(Region {
         sub: sub_n,
         w,
         h: hgt,
         plane: sub,
         pixels,
+        row_spans,
         cell_px: cell_px.max(1e-6),
     })
 }
@@ -331,7 +350,7 @@ fn sharp_fields(
     pat: &Pattern,
     cols: &[(usize, usize)],
     reach: i64,
-) -> Option<(Vec<f64>, Vec<f64>)> {
+) -> Option<(Vec<Field>, Vec<Field>)> {
     let hinv = pattern_to_plane(c, lens)?.try_inverse()?;
     // Box of one sub-sample, in cells (the tag's mean cell size in pixels): it makes the
     // sharp pattern continuous in the corners, so the blurred model is smooth in them.
@@ -340,8 +359,10 @@ fn sharp_fields(
         return None;
     }
     let n = reg.plane.len();
-    let mut white = vec![0.0f64; n];
-    let mut outside = vec![0.0f64; n];
+    let mut white = vec![0.0 as Field; n];
+    // A grid's surround is its white gap: no surround field to blur.
+    let free_outside = pat.surround.free_outside();
+    let mut outside = vec![0.0 as Field; if free_outside { n } else { 0 }];
     let inv2r = 0.5 / r;
     // Overlap of [x − r, x + r] with unit cells: up to two (cell, fraction).
     let split = |x: f64| -> [(i32, f64); 2] {
@@ -374,7 +395,9 @@ fn sharp_fields(
             let iz = 1.0 / u.z;
             let (pu, pv) = (u.x * iz, u.y * iz);
             if !far.contains(&pu) || !far.contains(&pv) {
-                outside[k] = 1.0;
+                if free_outside {
+                    outside[k] = 1.0;
+                }
                 continue;
             }
             let (su, sv) = (split(pu), split(pv));
@@ -397,8 +420,10 @@ fn sharp_fields(
                     }
                 }
             }
-            white[k] = wsum - crossing_cover(pat.surround, pu, pv, r);
-            outside[k] = osum;
+            white[k] = (wsum - crossing_cover(pat.surround, pu, pv, r)) as Field;
+            if free_outside {
+                outside[k] = osum as Field;
+            }
         }
     }
     Some((white, outside))
@@ -416,35 +441,42 @@ fn kernel_reach(sigma: f64) -> i64 {
 fn needed_columns(reg: &Region, reach: i64) -> Vec<(usize, usize)> {
     let sh = reg.h * reg.sub;
     let mut out = vec![(usize::MAX, 0usize); sh];
-    for px in &reg.pixels {
-        let (ci, rj) = (px.idx % reg.w, px.idx / reg.w);
+    for (rj, &(lo_c, hi_c)) in reg.row_spans.iter().enumerate() {
+        if lo_c >= hi_c {
+            continue;
+        }
         let lo = ((rj as i64 - reach) * reg.sub as i64).max(0) as usize;
         let hi = (((rj as i64 + reach + 1) * reg.sub as i64) as usize).min(sh);
         for r in &mut out[lo..hi] {
-            r.0 = r.0.min(ci);
-            r.1 = r.1.max(ci + 1);
+            r.0 = r.0.min(lo_c);
+            r.1 = r.1.max(hi_c);
         }
     }
     out
 }
 
-/// `x.floor()` for the pattern's small range without a libm call (the default x86-64
-/// target has no rounding instruction; `floor` was a fifth of the fit's time).
+/// `x.floor()` for the pattern's range (within ±`FLOOR_SHIFT` cells) without a libm
+/// call or a branch: the default x86-64 target has no rounding instruction, `floor` was
+/// a fifth of the fit's time, and truncation is flooring once the value is positive.
 fn floor(x: f64) -> f64 {
-    let t = x as i64 as f64;
-    if t > x {
-        t - 1.0
-    } else {
-        t
-    }
+    ((x + FLOOR_SHIFT) as i64) as f64 - FLOOR_SHIFT
 }
+
+/// Far beyond the pattern table (cells): every point [`floor`] sees lies within it.
+const FLOOR_SHIFT: f64 = 64.0;
 
 /// One axis of a pixel's response (its area ⊛ the Gaussian blur) at the sub-sample
 /// offsets of a pixel-aligned run: tap `s` weighs sub-sample `sub·pixel + s`.
 struct Kernel {
     first: i64,
-    taps: Vec<f64>,
+    taps: Vec<Field>,
 }
+
+/// The sharp pattern, the kernels and the horizontal passes are single precision: the
+/// blur passes are most of the fit's time and twice as wide in SIMD lanes so, and their
+/// rounding (~10⁻⁷ of the white level, thousandths of a grey level) is far below the
+/// image's noise and quantisation. The levels, residuals and steps stay double.
+type Field = f32;
 
 impl Kernel {
     /// The response for blur `sigma`, or (`derivative`) its derivative along the axis
@@ -461,12 +493,12 @@ impl Kernel {
         let taps = offsets
             .map(|s| {
                 let d = d(s);
-                if derivative {
+                (if derivative {
                     // d/dx of response(y − x) at y − x = d.
                     -(pdf((d + 0.5) / sigma) - pdf((d - 0.5) / sigma)) / sigma / norm
                 } else {
                     value(d) / norm
-                }
+                }) as Field
             })
             .collect();
         Kernel { first, taps }
@@ -474,7 +506,7 @@ impl Kernel {
 }
 
 /// Horizontal pass: the field convolved along rows, at pixel columns, every sub-row.
-fn hpass(reg: &Region, field: &[f64], k: &Kernel, cols: &[(usize, usize)]) -> Vec<f64> {
+fn hpass(reg: &Region, field: &[Field], k: &Kernel, cols: &[(usize, usize)]) -> Vec<Field> {
     let (sw, sh) = (reg.w * reg.sub, reg.h * reg.sub);
     // Column-major (pixel column, then sub-row), so the vertical pass reads it in order.
     let mut out = vec![0.0; sh * reg.w];
@@ -494,28 +526,29 @@ fn hpass(reg: &Region, field: &[f64], k: &Kernel, cols: &[(usize, usize)]) -> Ve
     out
 }
 
-/// `Σ a·b` with four running sums: a float sum in one accumulator is a serial chain the
-/// compiler may not reorder (the blur passes were most of the fit's time).
-fn dot(a: &[f64], b: &[f64]) -> f64 {
+/// `Σ a·b` with eight running sums: a float sum in one accumulator is a serial chain the
+/// compiler may not reorder (the blur passes were most of the fit's time); eight fill
+/// two SIMD registers.
+fn dot(a: &[Field], b: &[Field]) -> Field {
     let n = a.len().min(b.len());
-    let (a4, b4) = (a[..n].chunks_exact(4), b[..n].chunks_exact(4));
-    let tail: f64 = a4
+    let (a8, b8) = (a[..n].chunks_exact(8), b[..n].chunks_exact(8));
+    let tail: Field = a8
         .remainder()
         .iter()
-        .zip(b4.remainder())
+        .zip(b8.remainder())
         .map(|(x, y)| x * y)
         .sum();
-    let mut acc = [0.0f64; 4];
-    for (x, y) in a4.zip(b4) {
-        for k in 0..4 {
+    let mut acc = [0.0 as Field; 8];
+    for (x, y) in a8.zip(b8) {
+        for k in 0..8 {
             acc[k] += x[k] * y[k];
         }
     }
-    (acc[0] + acc[1]) + (acc[2] + acc[3]) + tail
+    ((acc[0] + acc[1]) + (acc[2] + acc[3])) + ((acc[4] + acc[5]) + (acc[6] + acc[7])) + tail
 }
 
 /// Vertical pass of a horizontal pass's output, at the compared pixels.
-fn vpass(reg: &Region, hcol: &[f64], k: &Kernel) -> Vec<f64> {
+fn vpass(reg: &Region, hcol: &[Field], k: &Kernel) -> Vec<f64> {
     let sh = reg.h * reg.sub;
     reg.pixels
         .iter()
@@ -530,7 +563,7 @@ fn vpass(reg: &Region, hcol: &[f64], k: &Kernel) -> Vec<f64> {
             dot(
                 &k.taps[(lo - start) as usize..(hi - start) as usize],
                 &col[lo as usize..hi as usize],
-            )
+            ) as f64
         })
         .collect()
 }
@@ -581,18 +614,19 @@ fn unpack(p: &Params) -> ([Vec2; 4], f64) {
     )
 }
 
-/// Blur σ step of the σ column of the Jacobian.
-const SIGMA_STEP: f64 = 1e-4;
+/// Blur σ step of the σ column of the Jacobian (large enough that the single-precision
+/// blur passes' rounding is a per-mille of the difference).
+const SIGMA_STEP: f64 = 1e-3;
 
 /// The model at one point of the fit, kept so the Jacobian there reuses its sharp
 /// pattern and first blur pass.
 struct Model {
-    sharp_w: Vec<f64>,
-    sharp_o: Vec<f64>,
+    sharp_w: Vec<Field>,
+    sharp_o: Vec<Field>,
     cols: Vec<(usize, usize)>,
     /// Horizontal passes of the two fields, and both blurred at the compared pixels.
-    h_w: Vec<f64>,
-    h_o: Vec<f64>,
+    h_w: Vec<Field>,
+    h_o: Vec<Field>,
     w: Vec<f64>,
     o: Vec<f64>,
 }
@@ -654,7 +688,7 @@ fn jacobian(
     lv: &SVector<f64, 7>,
     free_outside: bool,
     weights: &[f64],
-) -> Option<DMatrix<f64>> {
+) -> Option<Vec<Row>> {
     let (c, sigma) = unpack(p);
     let ds = SIGMA_STEP;
     let (k, dk) = (
@@ -663,7 +697,7 @@ fn jacobian(
     );
     let ks = Kernel::new(sigma + ds, false, reg.sub);
     // A field's gradient, and its change from σ to σ + δ (for σ).
-    let blurred = |f: &[f64], h: &[f64]| {
+    let blurred = |f: &[Field], h: &[Field]| {
         let hd = hpass(reg, f, &dk, &m.cols);
         let dx = vpass(reg, &hd, &k);
         let dy = vpass(reg, h, &dk);
@@ -693,7 +727,7 @@ fn jacobian(
             pattern_to_plane(&cj, lens)
         })
         .collect::<Option<_>>()?;
-    let mut jac = DMatrix::<f64>::zeros(reg.pixels.len(), 9);
+    let mut jac = Vec::with_capacity(reg.pixels.len());
     for (i, px) in reg.pixels.iter().enumerate() {
         let coef_w = lv[1] + lv[5] * px.dx + lv[6] * px.dy;
         let coef_o = lv[2];
@@ -702,30 +736,45 @@ fn jacobian(
             coef_w * wy[i] + coef_o * oy[i],
         );
         let u = hinv * Vec3::new(px.plane.x, px.plane.y, 1.0);
+        let mut row = Row::zeros();
         for (j, hj) in moved.iter().enumerate() {
             let q = hj * u;
             let dq = (Vec2::new(q.x / q.z, q.y / q.z) - px.plane) / CORNER_STEP;
             let v = px.lens_jac * dq;
             // r = grey − model; the model there becomes the one from −v: −∇·v.
-            jac[(i, j)] = grad.dot(&v);
+            row[j] = grad.dot(&v);
         }
-        jac[(i, 8)] = -(coef_w * (ws[i] - w0[i]) + coef_o * (os[i] - o0[i])) / ds;
+        row[8] = -(coef_w * (ws[i] - w0[i]) + coef_o * (os[i] - o0[i])) / ds;
+        jac.push(row);
     }
     // The levels are solved again at every step (variable projection): what they can
     // absorb is no step of the corners or σ, so the Jacobian is projected off the span
     // of the linear terms (Kaufman's form).
     // (Weighted as the levels are: P = I − A (AᵀWA)⁻¹ AᵀW.)
-    let a = DMatrix::<f64>::from_fn(reg.pixels.len(), 7, |i, k| {
-        basis(w0[i], o0[i], &reg.pixels[i])[k]
-    });
-    let wa = DMatrix::<f64>::from_fn(reg.pixels.len(), 7, |i, k| a[(i, k)] * weights[i]);
-    let mut ata = wa.transpose() * &a;
+    let mut ata = SMatrix::<f64, 7, 7>::zeros();
+    let mut atj = SMatrix::<f64, 7, 9>::zeros();
+    for ((px, row), (&w, (&wi, &oi))) in reg
+        .pixels
+        .iter()
+        .zip(&jac)
+        .zip(weights.iter().zip(w0.iter().zip(o0)))
+    {
+        let wa = basis(wi, oi, px) * w;
+        ata += wa * basis(wi, oi, px).transpose();
+        atj += wa * row.transpose();
+    }
     for k in 2..7 {
         ata[(k, k)] += 1e-6;
     }
-    let coef = ata.cholesky()?.solve(&(wa.transpose() * &jac));
-    Some(jac - a * coef)
+    let coef = ata.cholesky()?.solve(&atj);
+    for ((px, row), (&wi, &oi)) in reg.pixels.iter().zip(&mut jac).zip(w0.iter().zip(o0)) {
+        *row -= coef.transpose() * basis(wi, oi, px);
+    }
+    Some(jac)
 }
+
+/// One row of the residuals' Jacobian: the four corners (x, y) and σ.
+type Row = SVector<f64, 9>;
 
 /// Fit the tag `id` whose corners (raw pixels, the detector's order) are roughly `start`
 /// (within a few tenths of a pixel). `None` when the fit does not settle, the levels make
@@ -752,7 +801,7 @@ pub fn fit_whole_tag(
     let mut weights = vec![1.0; n];
     let (mut r, mut lv, mut model) = evaluate(&reg, &p, lens, &pat, &weights)?;
     let mut lambda = 1e-3;
-    let mut jac: Option<DMatrix<f64>> = None;
+    let mut jac: Option<Vec<Row>> = None;
     for _ in 0..MAX_ITERATIONS {
         // Iteratively reweighted: Huber weights from the current residuals, held through
         // the iteration so that the trial steps are compared on one cost.
@@ -768,9 +817,13 @@ pub fn fit_whole_tag(
             jac = Some(jacobian(&reg, &p, lens, &model, &lv, free, &weights)?);
         }
         let jac = jac.as_ref()?;
-        let wjac = DMatrix::<f64>::from_fn(n, 9, |i, k| jac[(i, k)] * weights[i]);
-        let jtj: SMatrix<f64, 9, 9> = (wjac.transpose() * jac).fixed_view::<9, 9>(0, 0).into();
-        let jtr: Params = (wjac.transpose() * &r).fixed_view::<9, 1>(0, 0).into();
+        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
+        let mut jtr = Params::zeros();
+        for ((row, &w), &ri) in jac.iter().zip(&weights).zip(r.iter()) {
+            let wrow = row * w;
+            jtj += wrow * row.transpose();
+            jtr += wrow * ri;
+        }
         let mut improved = false;
         let mut moved = f64::INFINITY;
         for _ in 0..6 {
@@ -914,13 +967,14 @@ mod tests {
             let jac = jacobian(&reg, &p, lens, &model, &lv, surround.free_outside(), &ones)
                 .expect("jacobian");
             for j in 0..9 {
-                let h = if j == 8 { 1e-4 } else { 1e-3 };
+                let h = 1e-3;
                 let (mut a, mut b) = (p, p);
                 a[j] += h;
                 b[j] -= h;
                 let r = |q: &Params| evaluate(&reg, q, lens, &pat, &ones).expect("evaluates").0;
                 let numeric = (r(&a) - r(&b)) / (2.0 * h);
-                let rel = (jac.column(j) - &numeric).norm() / numeric.norm();
+                let column = DVector::from_iterator(jac.len(), jac.iter().map(|row| row[j]));
+                let rel = (column - &numeric).norm() / numeric.norm();
                 assert!(
                     rel < 0.2,
                     "{surround:?} column {j}: relative difference {rel:.4}"

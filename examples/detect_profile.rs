@@ -1,0 +1,99 @@
+//! Time `detect_tags` on one thread over a capture written by `rigcal synth --images`
+//! and score it against the capture's `corners.json` (a profiling aid, also run under
+//! `perf record`): `cargo run --release --example detect_profile -- DIR [N] [edge-only]`
+//! detects the first N frames of every camera (all when omitted) and prints the median
+//! ms per image (the fastest of `REPEAT` runs each, default 1), the share of legible tags
+//! found and the corner RMS; `edge-only` turns the whole-tag fits off.
+use rigcal_detect::gray::Gray;
+use rigcal_detect::{detect_tags, DetectOptions};
+use std::collections::BTreeMap;
+
+#[derive(serde::Deserialize)]
+struct Truth {
+    camera: String,
+    frame: usize,
+    path: String,
+    corners: BTreeMap<String, [f64; 2]>,
+}
+
+fn main() {
+    let a: Vec<String> = std::env::args().collect();
+    let dir = std::path::PathBuf::from(&a[1]);
+    let frames: usize = a.get(2).and_then(|n| n.parse().ok()).unwrap_or(usize::MAX);
+    let s = rigcal_core::session::parse_session(
+        &std::fs::read(dir.join("session.json")).expect("read"),
+    )
+    .expect("valid");
+    let truth: Vec<Truth> =
+        serde_json::from_slice(&std::fs::read(dir.join("corners.json")).expect("read"))
+            .expect("json");
+    let mut opts = DetectOptions::default();
+    if a.get(3).is_some_and(|q| q == "edge-only") {
+        opts.whole_tag_fit = false;
+    }
+    let repeat: usize = std::env::var("REPEAT")
+        .ok()
+        .and_then(|r| r.parse().ok())
+        .unwrap_or(1);
+    rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
+    let (mut ms, mut legible, mut found, mut wrong, mut sq, mut n) = (vec![], 0, 0, 0, 0.0, 0);
+    for t in truth.iter().filter(|t| t.frame < frames) {
+        let camera = &s
+            .cameras
+            .iter()
+            .find(|c| c.id == t.camera)
+            .expect("camera")
+            .camera;
+        let g = Gray::from_dynamic(&image::open(dir.join(&t.path)).expect("image"));
+        // The fastest of a few runs: this machine's other load only ever adds time.
+        let mut best = f64::INFINITY;
+        let mut d = None;
+        for _ in 0..repeat {
+            let clock = std::time::Instant::now();
+            d = Some(detect_tags(&g, &s.manifest.targets, Some(camera), &opts).expect("detect"));
+            best = best.min(clock.elapsed().as_secs_f64() * 1e3);
+        }
+        let d = d.expect("one run");
+        ms.push(best);
+        let got: BTreeMap<&str, [f64; 2]> = d
+            .points
+            .iter()
+            .map(|p| (p.point.as_str(), [p.u, p.v]))
+            .collect();
+        let tags: std::collections::BTreeSet<&str> = t
+            .corners
+            .keys()
+            .map(|k| k.rsplit_once(':').expect("tag:id:k").0)
+            .collect();
+        legible += tags.len();
+        let missed: Vec<&str> = tags
+            .iter()
+            .filter(|tag| !(0..4).all(|k| got.contains_key(format!("{tag}:{k}").as_str())))
+            .copied()
+            .collect();
+        if !missed.is_empty() && std::env::var_os("MISSED").is_some() {
+            println!("{}: missed {missed:?}", t.path);
+        }
+        found += tags.len() - missed.len();
+        for (k, c) in &t.corners {
+            if let Some(p) = got.get(k.as_str()) {
+                let e = (p[0] - c[0]).hypot(p[1] - c[1]);
+                if e > 1.0 {
+                    wrong += 1;
+                } else {
+                    sq += e * e;
+                    n += 1;
+                }
+            }
+        }
+    }
+    ms.sort_by(f64::total_cmp);
+    println!(
+        "{} images: median {:.1} ms (min {:.1}); {found}/{legible} legible tags found ({:.2} %), {wrong} corners > 1 px off, RMS {:.4} px",
+        ms.len(),
+        ms[ms.len() / 2],
+        ms[0],
+        100.0 * found as f64 / legible.max(1) as f64,
+        (sq / n.max(1) as f64).sqrt()
+    );
+}
