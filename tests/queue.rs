@@ -197,3 +197,55 @@ async fn cancel_is_immediate_when_queued_and_flagged_when_running() {
         JobStatus::Queued
     );
 }
+
+/// An uploaded image whose detection gives no outcome (its blob could not be read) is
+/// not taken again at once: it waits out a backoff that doubles, then is `failed` at
+/// the attempt limit, with the `image` event said once, at the end.
+#[tokio::test]
+async fn detections_without_an_outcome_back_off_then_fail_at_the_limit() {
+    use rigcal_service::store::detections::MAX_DETECTION_ATTEMPTS;
+    use rigcal_service::store::ImageRow;
+    let (_d, store, _q, _t, s) = setup().await;
+    let img = ImageRow {
+        camera: "front".into(),
+        frame: 0,
+        sha256: "00".repeat(32),
+        bytes: 10,
+        format: "png".into(),
+        width: 4,
+        height: 4,
+    };
+    store.insert_image(&s, &img, true).await.unwrap();
+    let backoff_ms = 150;
+    let event = json!({"camera": "front", "frame": 0});
+    for attempt in 1..=MAX_DETECTION_ATTEMPTS {
+        let task = store
+            .claim_detections("w", 60_000, 1)
+            .await
+            .unwrap()
+            .pop()
+            .unwrap_or_else(|| panic!("attempt {attempt}: the detection is not claimable"));
+        assert_eq!(task.attempts, attempt);
+        let recorded = store
+            .finish_detection(&task, "w", "v1", Err("blob unreadable"), &event, backoff_ms)
+            .await
+            .unwrap();
+        assert!(recorded);
+        if attempt < MAX_DETECTION_ATTEMPTS {
+            // Not due yet: the backoff holds it.
+            let early = store.claim_detections("w", 60_000, 1).await.unwrap();
+            assert!(early.is_empty(), "attempt {attempt}: retried at once");
+            let wait = backoff_ms as u64 * (1 << (attempt - 1)) + 50;
+            tokio::time::sleep(std::time::Duration::from_millis(wait)).await;
+        }
+    }
+    assert!(store
+        .claim_detections("w", 60_000, 1)
+        .await
+        .unwrap()
+        .is_empty());
+    let counts = store.detection_counts(&s).await.unwrap();
+    assert_eq!((counts.queued, counts.done, counts.failed), (1, 0, 1));
+    let events = store.session_events_after(&s, 0).await.unwrap();
+    assert_eq!(events.iter().filter(|e| e.kind == "image").count(), 1);
+}

@@ -170,6 +170,7 @@ pub async fn run_batch(
     lease_ms: i64,
     limit: usize,
     max_pixels: u64,
+    backoff_ms: i64,
     refreshes: &mut Refreshes,
 ) -> sqlx::Result<usize> {
     // Each session parsed once while its images are being detected.
@@ -219,7 +220,7 @@ pub async fn run_batch(
         }
         let doc = doc.as_deref().map_err(String::as_str);
         if store
-            .finish_detection(&task, name, DETECTOR_VERSION, doc, &event)
+            .finish_detection(&task, name, DETECTOR_VERSION, doc, &event, backoff_ms)
             .await?
             && sessions[&task.session_id].is_ok()
         {

@@ -28,7 +28,8 @@ pub struct WorkerConfig {
     pub lease: Duration,
     /// How often an idle worker looks for work.
     pub poll: Duration,
-    /// First retry delay; doubled per attempt.
+    /// First retry delay of a job, and of an uploaded image's detection; doubled per
+    /// attempt.
     pub backoff: Duration,
     /// Largest image decoded at detection: the same budget the upload was checked
     /// against (`--max-image-pixels`), so an image the API accepted is never skipped.
@@ -165,6 +166,7 @@ async fn worker_loop(
 ) {
     let queue = Queue::new(store.db.clone());
     let lease_ms = cfg.lease.as_millis() as i64;
+    let backoff = cfg.backoff.as_millis() as i64;
     // Uploaded images first: each is short, and together they make the operator's
     // capture check. The workers of a process share the cores between them.
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
@@ -172,7 +174,17 @@ async fn worker_loop(
     let mut refreshes = detection::Refreshes::default();
     while !*stop.borrow() {
         let max_px = cfg.max_image_pixels;
-        match detection::run_batch(&name, &store, lease_ms, batch, max_px, &mut refreshes).await {
+        match detection::run_batch(
+            &name,
+            &store,
+            lease_ms,
+            batch,
+            max_px,
+            backoff,
+            &mut refreshes,
+        )
+        .await
+        {
             Ok(0) => {}
             Ok(_) => continue,
             Err(e) => tracing::warn!(worker = %name, "image detection failed (storage): {e}"),

@@ -61,6 +61,13 @@ pub struct SessionEvent {
 /// outcome: a panic of the detector or a blob that could not be read).
 pub const MAX_DETECTION_ATTEMPTS: i64 = 3;
 
+/// When a detection that gave no outcome may be claimed again: `backoff_ms` after the
+/// first attempt, doubling after each next one, as jobs back off (a blob store that
+/// failed a read a moment ago is given time to recover, not hit again at once).
+fn retry_at(now: i64, attempts: i64, backoff_ms: i64) -> i64 {
+    now.saturating_add(backoff_ms.saturating_mul(1 << (attempts - 1).clamp(0, 16)))
+}
+
 const CLAIM_SQLITE: &str = "UPDATE image_detections SET lease_owner = $1, lease_expires_at = NOW_MS + $2, attempts = attempts + 1
      WHERE id IN (SELECT id FROM image_detections WHERE status = 'pending'
                   AND (lease_expires_at IS NULL OR lease_expires_at < NOW_MS)
@@ -108,9 +115,10 @@ impl Store {
     }
 
     /// Record what a held detection gave: its outcome (JSON, of `detector`), or the
-    /// error of an attempt that gave none (retried until [`MAX_DETECTION_ATTEMPTS`],
-    /// then `failed`). Then records the `image` event. `false` when the lease was lost
-    /// (another worker has the row now; nothing written).
+    /// error of an attempt that gave none (retried after a backoff — [`retry_at`], from
+    /// `backoff_ms` — until [`MAX_DETECTION_ATTEMPTS`], then `failed`). Then records the
+    /// `image` event. `false` when the lease was lost (another worker has the row now;
+    /// nothing written).
     pub async fn finish_detection(
         &self,
         task: &DetectionTask,
@@ -118,6 +126,7 @@ impl Store {
         detector: &str,
         outcome: Result<&str, &str>,
         event: &serde_json::Value,
+        backoff_ms: i64,
     ) -> sqlx::Result<bool> {
         let mut tx = self.db.begin().await?;
         let n = match outcome {
@@ -128,13 +137,17 @@ impl Store {
                 .bind(&task.id)
                 .bind(owner)).await?,
             Err(why) => {
-                let status = if task.attempts >= MAX_DETECTION_ATTEMPTS { "failed" } else { "pending" };
-                tx.execute(sql("UPDATE image_detections SET status = $1, error = $2, finished_at = $3, lease_owner = NULL, lease_expires_at = NULL WHERE id = $4 AND lease_owner = $5")
-                    .bind(status)
+                let failed = task.attempts >= MAX_DETECTION_ATTEMPTS;
+                let now = now_ms();
+                // A retry waits out its backoff as an expired lease would: the claim
+                // takes rows whose `lease_expires_at` has passed.
+                tx.execute(sql("UPDATE image_detections SET status = $1, error = $2, finished_at = $3, lease_owner = NULL, lease_expires_at = $6 WHERE id = $4 AND lease_owner = $5")
+                    .bind(if failed { "failed" } else { "pending" })
                     .bind(why)
-                    .bind((status == "failed").then(now_ms))
+                    .bind(failed.then_some(now))
                     .bind(&task.id)
-                    .bind(owner)).await?
+                    .bind(owner)
+                    .bind((!failed).then(|| retry_at(now, task.attempts, backoff_ms)))).await?
             }
         };
         if n != 1 {
