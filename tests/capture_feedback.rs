@@ -313,3 +313,53 @@ async fn a_session_of_detections_is_checked_at_creation() {
     let mut events = Events::open(&c, &s, sid).await;
     assert!(events.next(MIN).await.is_none());
 }
+
+/// A job submitted while a large upload is still being detected runs after a turn of
+/// images (`jobs::detection::IMAGES_PER_TURN`), not after the whole upload: a fleet
+/// keeps uploading, and a factory's job must not wait for every image of it. One
+/// worker: before, it detected all 80 pending 1080p images first.
+#[tokio::test]
+async fn a_job_does_not_wait_for_every_pending_upload() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+    let (frames, w, h) = (40, 1920, 1080);
+    let manifest = image_session(frames, w, h);
+    let mut files = vec![(
+        "capture/session.json".to_string(),
+        serde_json::to_vec(&manifest).unwrap(),
+    )];
+    for k in 0..frames {
+        for (i, cam) in ["front", "rear"].into_iter().enumerate() {
+            let seed = (2 * k + i) as u8;
+            files.push((format!("capture/{cam}/{k:04}.png"), png(w, h, seed)));
+        }
+    }
+    let files: Vec<(&str, Vec<u8>)> = files.iter().map(|(n, b)| (n.as_str(), b.clone())).collect();
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .header("content-type", "application/x-tar")
+        .body(tar_archive(&files))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    let upload: Value = r.json().await.unwrap();
+    let upload_id = upload["id"].as_str().unwrap();
+    let other = create_session(&c, &s, &synth_session("lebraly-5.1", 3, 0.3, "VIN-2")).await;
+    let job = submit(&c, &s, other["id"].as_str().unwrap()).await;
+    let done = wait_job(&c, &s, job["id"].as_str().unwrap(), MIN).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let view = get_json(&c, &s, &format!("/v1/sessions/{upload_id}")).await;
+    let (queued, detected) = (
+        view["images_to_detect"].as_i64(),
+        view["images_detected"].as_i64(),
+    );
+    assert_eq!(queued, Some(2 * frames as i64), "{view}");
+    assert!(
+        detected.is_some_and(|n| n < 2 * frames as i64),
+        "the job waited for the whole upload: {view}"
+    );
+    eprintln!("job done with {detected:?} of {queued:?} uploaded images detected");
+}

@@ -159,11 +159,17 @@ impl Refreshes {
     }
 }
 
+/// Uploaded images a worker detects in one turn before it looks at the job queue: a job
+/// submitted while a fleet's uploads keep arriving waits for at most this many images
+/// (a few seconds at 1080p), not for every image uploaded meanwhile. A job's own
+/// detection reuses what was detected already, so the images left wait little longer.
+pub const IMAGES_PER_TURN: usize = 16;
+
 /// Detect pending uploaded images, up to `limit` at once on blocking threads, claiming
 /// the next as soon as one ends (so no core waits for the slowest image of a batch),
-/// until none is pending; record each outcome and recompute the capture checks that are
-/// due (see [`Refreshes`]). Returns how many were detected (0: nothing to do; the
-/// checks still behind are brought up to date then).
+/// until none is pending or [`IMAGES_PER_TURN`] were claimed; record each outcome and
+/// recompute the capture checks that are due (see [`Refreshes`]). Returns how many were
+/// detected (0: nothing to do; the checks still behind are brought up to date then).
 pub async fn run_batch(
     name: &str,
     store: &Store,
@@ -177,13 +183,15 @@ pub async fn run_batch(
     let mut sessions: HashMap<String, Result<Arc<Session>, String>> = HashMap::new();
     let mut running = FuturesUnordered::new();
     let mut done = 0;
+    let mut claimed = 0;
     let mut drained = false;
     loop {
-        while !drained && running.len() < limit {
+        while !drained && running.len() < limit && claimed < IMAGES_PER_TURN {
             let Some(task) = store.claim_detections(name, lease_ms, 1).await?.pop() else {
                 drained = true;
                 break;
             };
+            claimed += 1;
             if !sessions.contains_key(&task.session_id) {
                 let parsed = load_session(store, &task.session_id).await?;
                 sessions.insert(task.session_id.clone(), parsed);

@@ -168,13 +168,14 @@ async fn worker_loop(
     let lease_ms = cfg.lease.as_millis() as i64;
     let backoff = cfg.backoff.as_millis() as i64;
     // Uploaded images first: each is short, and together they make the operator's
-    // capture check. The workers of a process share the cores between them.
+    // capture check; but a turn of them at a time, so that jobs are not starved by a
+    // stream of uploads. The workers of a process share the cores between them.
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let batch = cores.div_ceil(cfg.workers.max(1));
     let mut refreshes = detection::Refreshes::default();
     while !*stop.borrow() {
         let max_px = cfg.max_image_pixels;
-        match detection::run_batch(
+        let detected = match detection::run_batch(
             &name,
             &store,
             lease_ms,
@@ -185,15 +186,19 @@ async fn worker_loop(
         )
         .await
         {
-            Ok(0) => {}
-            Ok(_) => continue,
-            Err(e) => tracing::warn!(worker = %name, "image detection failed (storage): {e}"),
-        }
+            Ok(n) => n,
+            Err(e) => {
+                tracing::warn!(worker = %name, "image detection failed (storage): {e}");
+                0
+            }
+        };
+        // After a turn of images, one job if any waits; then the images again.
         match queue.claim(&name, lease_ms).await {
             Ok(Some(job)) => {
                 tracing::info!(job = %job.id, attempt = job.attempts, worker = %name, "claimed");
                 run_job(&name, &store, &queue, &metrics, &cfg, job, stop.clone()).await;
             }
+            Ok(None) if detected > 0 => {}
             Ok(None) => wake.idle(cfg.poll, &mut stop).await,
             Err(e) => {
                 tracing::warn!(worker = %name, "claim failed: {e}");
