@@ -336,16 +336,7 @@ async fn a_job_does_not_wait_for_every_pending_upload() {
             files.push((format!("capture/{cam}/{k:04}.png"), png(w, h, seed)));
         }
     }
-    let files: Vec<(&str, Vec<u8>)> = files.iter().map(|(n, b)| (n.as_str(), b.clone())).collect();
-    let r = c
-        .post(s.url("/v1/sessions"))
-        .header("content-type", "application/x-tar")
-        .body(tar_archive(&files))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 201);
-    let upload: Value = r.json().await.unwrap();
+    let upload = create_archive_session(&c, &s, &files).await;
     let upload_id = upload["id"].as_str().unwrap();
     let other = create_session(&c, &s, &synth_session("lebraly-5.1", 3, 0.3, "VIN-2")).await;
     let job = submit(&c, &s, other["id"].as_str().unwrap()).await;

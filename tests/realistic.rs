@@ -9,7 +9,6 @@ use rigcal_core::geometry::Vec3;
 use rigcal_core::result::{ExtrinsicValue, ResultDocument, Status};
 use rigcal_engine::pipeline::{calibrate, CalibOptions};
 use rigcal_synth::hall::{hall, Hall, Nuisance};
-use serde_json::Value;
 
 /// A planar S-curve where every target is seen by one camera only: each non-reference
 /// camera's height along the plane normal is unobservable, everything else is. The
@@ -108,21 +107,11 @@ async fn a_rendered_hall_capture_calibrates_through_the_service() {
             ));
         }
     }
-    let entries: Vec<(&str, Vec<u8>)> =
-        files.iter().map(|(p, b)| (p.as_str(), b.clone())).collect();
     let dir = tempfile::tempdir().unwrap();
     let key = api_key(dir.path(), "acme");
     let s = Server::start(dir.path(), &["--workers", "1"]);
     let c = client(&key);
-    let r = c
-        .post(s.url("/v1/sessions"))
-        .header("content-type", "application/x-tar")
-        .body(tar_archive(&entries))
-        .send()
-        .await
-        .unwrap();
-    assert_eq!(r.status().as_u16(), 201);
-    let v: Value = r.json().await.unwrap();
+    let v = create_archive_session(&c, &s, &files).await;
     assert_eq!(v["images_received"], 72, "{v}");
     let done = run_job(
         &c,

@@ -248,6 +248,26 @@ pub async fn create_session(c: &reqwest::Client, s: &Server, manifest: &Value) -
     r.json().await.unwrap()
 }
 
+/// Create a session from a tar archive of `files` (path, bytes): the manifest and its
+/// images in one request.
+pub async fn create_archive_session(
+    c: &reqwest::Client,
+    s: &Server,
+    files: &[(String, Vec<u8>)],
+) -> Value {
+    let entries: Vec<(&str, Vec<u8>)> =
+        files.iter().map(|(p, b)| (p.as_str(), b.clone())).collect();
+    let r = c
+        .post(s.url("/v1/sessions"))
+        .header("content-type", "application/x-tar")
+        .body(tar_archive(&entries))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status().as_u16(), 201);
+    r.json().await.unwrap()
+}
+
 pub async fn submit(c: &reqwest::Client, s: &Server, session_id: &str) -> Value {
     let r = c
         .post(s.url("/v1/jobs"))
