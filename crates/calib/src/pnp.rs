@@ -2,12 +2,12 @@
 //! DLT otherwise, both on undistorted normalised coordinates, then Levenberg–Marquardt
 //! on the pixel reprojection error with the full camera model.
 
-use nalgebra::{DMatrix, Matrix3x4, Matrix6, Vector6};
+use nalgebra::{DMatrix, Matrix3x4, Matrix6, Vector6, U6};
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::plane::{is_planar, principal_axes};
 use rigcal_core::geometry::{so3, Camera, Mat3, Pose, Vec2, Vec3};
 use rigcal_core::linalg::null_vector;
-use rigcal_solve::lm::{minimize, LeastSquares, Rules};
+use rigcal_solve::lm::{minimize, Dense, LeastSquares, Rules};
 
 /// `cam_from_local` from at least 4 (planar) or 6 (general) correspondences.
 pub fn estimate_pose(camera: &Camera, local: &[Vec3], uv: &[Vec2]) -> Option<Pose> {
@@ -181,16 +181,17 @@ struct PoseFit6<N, C> {
     cost: C,
 }
 
-impl<N, C> LeastSquares<6> for PoseFit6<N, C>
+impl<N, C> LeastSquares for PoseFit6<N, C>
 where
     N: Fn(&Pose) -> Option<(Matrix6<f64>, Vector6<f64>)>,
     C: Fn(&Pose) -> Option<f64>,
 {
     type Point = Pose;
-    fn linearize(&self, pose: &Pose) -> Option<(Matrix6<f64>, Vector6<f64>)> {
-        (self.normal)(pose)
+    type Normal = Dense<U6>;
+    fn linearize(&mut self, pose: &Pose) -> Option<Dense<U6>> {
+        (self.normal)(pose).map(|(h, g)| Dense::new(h, g))
     }
-    fn cost(&self, pose: &Pose) -> Option<f64> {
+    fn cost(&mut self, pose: &Pose) -> Option<f64> {
         (self.cost)(pose)
     }
     fn retract(&self, pose: &Pose, step: &Vector6<f64>) -> Pose {
@@ -212,7 +213,7 @@ pub fn damped_pose_fit(
     normal: impl Fn(&Pose) -> Option<(Matrix6<f64>, Vector6<f64>)>,
     cost: impl Fn(&Pose) -> Option<f64>,
 ) -> Pose {
-    minimize(&PoseFit6 { normal, cost }, init, rules).map_or(init, |fit| fit.point)
+    minimize(&mut PoseFit6 { normal, cost }, init, rules).map_or(init, |fit| fit.point)
 }
 
 /// Gauss–Newton with Levenberg damping on the pixel reprojection error.

@@ -623,11 +623,15 @@ fn refine_body(
         ))
     };
     let rules = rigcal_solve::lm::Rules {
-        max_iterations: 20,
+        max_iterations: 40,
+        damping: rigcal_solve::lm::Damping::Marquardt {
+            raise: 4.0,
+            lower: 1.0 / 3.0,
+            min_lambda: 1e-9,
+        },
         tries: 8,
-        rel_decrease: 1e-10,
+        function_tolerance: 1e-10,
         min_step: 0.0,
-        min_lambda: 1e-9,
         ..Default::default()
     };
     pnp::damped_pose_fit(init, &rules, normal, |p| {

@@ -14,7 +14,7 @@
 use super::gray::Gray;
 use rigcal_core::geometry::line2::{distance, fit_line, intersect};
 use rigcal_core::geometry::{normal_cdf, Camera, Vec2, Vec3};
-use rigcal_solve::lm::{minimize, LeastSquares, Rules};
+use rigcal_solve::lm::{minimize, Damping, Dense, LeastSquares, Rules};
 
 /// Maps between raw pixels and the plane where a tag's sides are straight.
 #[derive(Clone, Copy)]
@@ -162,7 +162,7 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
     // Start: the interpolated crossing, levels from the contrast, σ of a typical lens.
     let mean = samples.iter().map(|s| s.1).sum::<f64>() / samples.len() as f64;
     let init = nalgebra::Vector4::new(mean - 0.5 * contrast, contrast, e0, 0.9);
-    let fit = minimize(&StepProfile(&samples), init, &STEP_FIT)?;
+    let fit = minimize(&mut StepProfile(&samples), init, &STEP_FIT)?;
     let x = fit.point;
     ((x[2] - e0).abs() < 1.0 && x[1] > 0.0).then_some(x[2])
 }
@@ -170,15 +170,20 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
 /// The damping and stopping of the blurred-step fit: a few iterations suffice from the
 /// interpolated crossing; it ends when the edge position settles ([`StepProfile`]).
 const STEP_FIT: Rules = Rules {
-    max_iterations: 20,
-    tries: 8,
+    max_iterations: 40,
+    damping: Damping::Marquardt {
+        raise: 10.0,
+        lower: 0.3,
+        min_lambda: 1e-9,
+    },
     initial_lambda: 1e-3,
-    raise: 10.0,
-    lower: 0.3,
-    min_lambda: 1e-9,
-    rel_decrease: 0.0,
-    min_step: 0.0,
     diagonal_floor: 0.0,
+    tries: 8,
+    max_lambda: f64::INFINITY,
+    function_tolerance: 0.0,
+    min_step: 0.0,
+    gradient_tolerance: 0.0,
+    creep_tolerance: 0.0,
 };
 
 /// A blurred step `a + b·Φ((s − e)/σ)` fitted to `(s, grey)` samples across an edge;
@@ -186,13 +191,11 @@ const STEP_FIT: Rules = Rules {
 /// lens blur: such a point is refused).
 struct StepProfile<'a>(&'a [(f64, f64)]);
 
-impl LeastSquares<4> for StepProfile<'_> {
+impl LeastSquares for StepProfile<'_> {
     type Point = nalgebra::Vector4<f64>;
+    type Normal = Dense<nalgebra::U4>;
 
-    fn linearize(
-        &self,
-        x: &nalgebra::Vector4<f64>,
-    ) -> Option<(nalgebra::Matrix4<f64>, nalgebra::Vector4<f64>)> {
+    fn linearize(&mut self, x: &nalgebra::Vector4<f64>) -> Option<Dense<nalgebra::U4>> {
         let mut jtj = nalgebra::Matrix4::<f64>::zeros();
         let mut jtr = nalgebra::Vector4::<f64>::zeros();
         for (s, v) in self.0 {
@@ -208,10 +211,10 @@ impl LeastSquares<4> for StepProfile<'_> {
             jtj += j * j.transpose();
             jtr += j * r;
         }
-        Some((jtj, jtr))
+        Some(Dense::new(jtj, jtr))
     }
 
-    fn cost(&self, x: &nalgebra::Vector4<f64>) -> Option<f64> {
+    fn cost(&mut self, x: &nalgebra::Vector4<f64>) -> Option<f64> {
         (x[3] > 0.2 && x[3] < 4.0).then(|| {
             self.0
                 .iter()
@@ -229,7 +232,7 @@ impl LeastSquares<4> for StepProfile<'_> {
     }
 
     /// The edge position moved less than 10⁻⁵ px.
-    fn settled(&self, step: &nalgebra::Vector4<f64>) -> bool {
+    fn settled(&self, _: &nalgebra::Vector4<f64>, step: &nalgebra::Vector4<f64>) -> bool {
         step[2].abs() < 1e-5
     }
 }

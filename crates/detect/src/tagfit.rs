@@ -17,10 +17,11 @@
 
 use super::gray::Gray;
 use super::refine::Lens;
-use nalgebra::{DVector, SMatrix, SVector};
+use nalgebra::{DVector, SMatrix, SVector, U9};
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::{normal_cdf, Mat3, Vec2, Vec3};
 use rigcal_core::target::board::cell_white;
+use rigcal_solve::lm::{minimize, Damping, Dense, LeastSquares, Rules, Termination};
 
 /// Tags whose shallowest extent across a side is under this many pixels are fitted
 /// whole; above it the edge fit of [`super::refine`] has the ±2.5 px of room it needs
@@ -797,71 +798,22 @@ pub fn fit_whole_tag(
         p[2 * k + 1] = start[k].y;
     }
     p[8] = 0.9;
-    let n = reg.pixels.len();
-    let mut weights = vec![1.0; n];
-    let (mut r, mut lv, mut model) = evaluate(&reg, &p, lens, &pat, &weights)?;
-    let mut lambda = 1e-3;
-    let mut jac: Option<Vec<Row>> = None;
-    for _ in 0..MAX_ITERATIONS {
-        // Iteratively reweighted: Huber weights from the current residuals, held through
-        // the iteration so that the trial steps are compared on one cost.
-        weights = huber_weights(&r);
-        let cost_of =
-            |r: &DVector<f64>| r.iter().zip(&weights).map(|(x, w)| w * x * x).sum::<f64>();
-        let cost = cost_of(&r);
-        // The Jacobian of the first iteration serves the later ones (a chord method): the
-        // steps after the first are hundredths of a pixel, over which it barely changes,
-        // and it is half an iteration's time.
-        if jac.is_none() {
-            let free = surround.free_outside();
-            jac = Some(jacobian(&reg, &p, lens, &model, &lv, free, &weights)?);
-        }
-        let jac = jac.as_ref()?;
-        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
-        let mut jtr = Params::zeros();
-        for ((row, &w), &ri) in jac.iter().zip(&weights).zip(r.iter()) {
-            let wrow = row * w;
-            jtj += wrow * row.transpose();
-            jtr += wrow * ri;
-        }
-        let mut improved = false;
-        let mut moved = f64::INFINITY;
-        for _ in 0..6 {
-            let mut a = jtj;
-            for k in 0..9 {
-                a[(k, k)] *= 1.0 + lambda;
-            }
-            let Some(dp) = a.cholesky().map(|ch| ch.solve(&(-jtr))) else {
-                lambda *= 10.0;
-                continue;
-            };
-            let q = p + dp;
-            // A step below the settling size is taken without evaluating the model there
-            // (a fifth of the fit's time): over thousandths of a pixel the cost is its
-            // quadratic model, and the fit ends with it anyway.
-            if (0..8).all(|k| dp[k].abs() < SETTLED_PX) && lambda < 1e-2 {
-                p = q;
-                moved = 0.0;
-                improved = true;
-                break;
-            }
-            if let Some((rq, lq, mq)) = evaluate(&reg, &q, lens, &pat, &weights) {
-                if cost_of(&rq) < cost {
-                    moved = (0..8).map(|k| dp[k].abs()).fold(0.0, f64::max);
-                    (p, r, lv, model) = (q, rq, lq, mq);
-                    lambda = (lambda * 0.3).max(1e-7);
-                    improved = true;
-                    break;
-                }
-            }
-            lambda *= 10.0;
-        }
-        if !improved || moved < SETTLED_PX {
-            break;
-        }
+    let mut problem = TagFit {
+        reg: &reg,
+        lens,
+        pat: &pat,
+        weights: vec![1.0; reg.pixels.len()],
+        jacobian: None,
+        evaluated: None,
+        at: None,
+    };
+    let fit = minimize(&mut problem, p, &FIT)?;
+    if fit.termination == Termination::NotLinearizable {
+        return None;
     }
+    let (r, lv) = problem.at?;
     let cost = r.norm_squared();
-    let (corners, sigma) = unpack(&p);
+    let (corners, sigma) = unpack(&fit.point);
     if lv[1] <= 0.0 || (0..4).any(|k| (corners[k] - start[k]).norm() > 1.0) {
         return None;
     }
@@ -874,6 +826,112 @@ pub fn fit_whole_tag(
         rms: (cost / r.len().max(1) as f64).sqrt(),
     })
 }
+
+/// The whole-tag fit as a problem of the LM driver. Iteratively reweighted: Huber
+/// weights from the residuals at each linearisation, held while the steps from there are
+/// compared, so that they are compared on one cost. The Jacobian of the first
+/// linearisation serves the later ones (a chord method): the steps after the first are
+/// hundredths of a pixel, over which it barely changes, and it is half an iteration's
+/// time.
+struct TagFit<'a> {
+    reg: &'a Region,
+    lens: Lens<'a>,
+    pat: &'a Pattern,
+    weights: Vec<f64>,
+    jacobian: Option<Vec<Row>>,
+    /// The model at the last point whose cost was evaluated (the candidate the driver
+    /// linearises at next, when it accepts it).
+    evaluated: Option<(Params, DVector<f64>, SVector<f64, 7>, Model)>,
+    /// Residuals and levels at the last linearised point.
+    at: Option<(DVector<f64>, SVector<f64, 7>)>,
+}
+
+impl TagFit<'_> {
+    fn weighted_cost(&self, r: &DVector<f64>) -> f64 {
+        r.iter().zip(&self.weights).map(|(x, w)| w * x * x).sum()
+    }
+}
+
+impl LeastSquares for TagFit<'_> {
+    type Point = Params;
+    type Normal = Dense<U9>;
+
+    fn linearize(&mut self, p: &Params) -> Option<Dense<U9>> {
+        let (r, lv, model) = match self.evaluated.take() {
+            Some((q, r, lv, m)) if q == *p => (r, lv, m),
+            _ => evaluate(self.reg, p, self.lens, self.pat, &self.weights)?,
+        };
+        self.weights = huber_weights(&r);
+        if self.jacobian.is_none() {
+            let free = self.pat.surround.free_outside();
+            self.jacobian = Some(jacobian(
+                self.reg,
+                p,
+                self.lens,
+                &model,
+                &lv,
+                free,
+                &self.weights,
+            )?);
+        }
+        let jac = self.jacobian.as_ref()?;
+        let mut jtj = SMatrix::<f64, 9, 9>::zeros();
+        let mut jtr = Params::zeros();
+        for ((row, &w), &ri) in jac.iter().zip(&self.weights).zip(r.iter()) {
+            let wrow = row * w;
+            jtj += wrow * row.transpose();
+            jtr += wrow * ri;
+        }
+        let cost = self.weighted_cost(&r);
+        self.at = Some((r, lv));
+        Some(Dense {
+            h: jtj,
+            g: jtr,
+            cost: Some(cost),
+        })
+    }
+
+    fn cost(&mut self, p: &Params) -> Option<f64> {
+        let (r, lv, m) = evaluate(self.reg, p, self.lens, self.pat, &self.weights)?;
+        let cost = self.weighted_cost(&r);
+        self.evaluated = Some((*p, r, lv, m));
+        Some(cost)
+    }
+
+    fn retract(&self, p: &Params, step: &Params) -> Params {
+        p + step
+    }
+
+    fn settled(&self, _: &Params, step: &Params) -> bool {
+        (0..8).all(|k| step[k].abs() < SETTLED_PX)
+    }
+
+    /// A step below the settling size, undamped, is taken without evaluating the model
+    /// there (a fifth of the fit's time): over thousandths of a pixel the cost is its
+    /// quadratic model, and the fit ends with it anyway.
+    fn trusted(&self, step: &Params, lambda: f64) -> bool {
+        lambda < 1e-2 && self.settled(step, step)
+    }
+}
+
+/// The fit's damping and stopping: from corners within a few tenths of a pixel it
+/// settles in 2-4 steps; it ends when the corners move less than [`SETTLED_PX`].
+const FIT: Rules = Rules {
+    max_iterations: 24,
+    damping: Damping::Marquardt {
+        raise: 10.0,
+        lower: 0.3,
+        min_lambda: 1e-7,
+    },
+    initial_lambda: 1e-3,
+    diagonal_floor: 0.0,
+    tries: 6,
+    max_lambda: f64::INFINITY,
+    function_tolerance: 0.0,
+    min_step: 0.0,
+    gradient_tolerance: 0.0,
+    creep_tolerance: 0.0,
+};
 
 /// Huber weights for residuals `r` (grey levels): 1 within `HUBER_K` robust standard
 /// deviations (1.4826 × the median absolute residual, at least `MIN_SCALE`), falling as
@@ -894,9 +952,7 @@ const HUBER_K: f64 = 2.0;
 /// Grey levels: below this the residuals are quantisation, not a scale.
 const MIN_SCALE: f64 = 0.5;
 
-/// Iterations of the fit (from corners within a few tenths of a pixel it settles in 2-4),
-/// and the corner step (px) below which it has settled.
-const MAX_ITERATIONS: usize = 10;
+/// The corner step (px) below which the fit has settled.
 const SETTLED_PX: f64 = 5e-3;
 
 #[cfg(test)]

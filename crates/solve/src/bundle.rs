@@ -12,6 +12,7 @@
 //! bodies (their blocks of the normal matrix are block-diagonal), leaving a dense system
 //! over rig poses and extrinsics, solved by Cholesky.
 
+use super::lm::{self, Damping, LeastSquares, NormalEquations, Rules, Termination};
 use super::loss::Loss;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix6, SMatrix, Vector6};
 use rigcal_core::geometry::so3::skew;
@@ -505,61 +506,6 @@ impl BundleProblem {
         }
     }
 
-    /// Solve the damped system; returns the step for reduced and eliminated blocks.
-    fn solve_step(
-        &self,
-        layout: &Layout,
-        n: &Normal,
-        lambda: f64,
-    ) -> Option<(DVector<f64>, Vec<Vector6<f64>>)> {
-        let nr = layout.n_reduced;
-        let mut s = n.hrr.clone();
-        for i in 0..nr {
-            s[(i, i)] += lambda * n.hrr[(i, i)].max(1e-9);
-        }
-        let mut rhs = -n.gr.clone();
-        let mut einv = Vec::with_capacity(n.hee.len());
-        let mut dense = DenseRows::new(nr);
-        for (e, hee) in n.hee.iter().enumerate() {
-            let size = layout.elim_size[e];
-            let mut h = *hee;
-            for i in 0..size {
-                h[(i, i)] += lambda * hee[(i, i)].max(1e-9);
-            }
-            let inv = invert_block(&h, size)?;
-            eliminate_block(
-                &mut s,
-                &mut dense,
-                Some(&mut rhs),
-                &layout.couplings[e],
-                &n.her[e],
-                &inv,
-                &n.ge[e],
-                size,
-            );
-            einv.push(inv);
-        }
-        dense.flush(&mut s);
-        let dr = if nr > 0 {
-            s.cholesky()?.solve(&rhs)
-        } else {
-            DVector::zeros(0)
-        };
-        let mut de = Vec::with_capacity(n.hee.len());
-        for (e, inv) in einv.iter().enumerate() {
-            let mut b = -n.ge[e];
-            for (ca, &(oa, za)) in layout.couplings[e].iter().enumerate() {
-                let mut x = Vector6::zeros();
-                for k in 0..za {
-                    x[k] = dr[oa + k];
-                }
-                b -= n.her[e][ca] * x;
-            }
-            de.push(inv * b);
-        }
-        Some((dr, de))
-    }
-
     fn apply_step(&self, layout: &Layout, dr: &DVector<f64>, de: &[Vector6<f64>]) -> BundleProblem {
         let mut out = self.clone();
         let get6 = |slot: Slot| -> Option<Vector6<f64>> {
@@ -602,10 +548,30 @@ impl BundleProblem {
         out
     }
 
-    /// Levenberg–Marquardt (Nielsen's damping update) until convergence.
+    /// Levenberg–Marquardt (the driver of [`crate::lm`], Nielsen's damping update, the
+    /// points and bodies eliminated by a Schur complement) until convergence.
     pub fn solve(&mut self, opts: &LmOptions) -> BundleSummary {
         let start = Instant::now();
         let layout = self.layout();
+        let rules = Rules {
+            max_iterations: opts.max_iterations,
+            damping: Damping::Nielsen,
+            initial_lambda: 1e-4,
+            diagonal_floor: 1e-9,
+            tries: usize::MAX,
+            max_lambda: 1e20,
+            function_tolerance: opts.function_tolerance,
+            min_step: 0.0,
+            gradient_tolerance: opts.gradient_tolerance,
+            // Ceres' convergence test (relative decrease < 1e-6): still creeping along a
+            // flat direction at the limit is converged, not failed.
+            creep_tolerance: 1e-6,
+        };
+        let mut problem = RigFit {
+            layout: &layout,
+            loss: opts.loss,
+            parameter_tolerance: opts.parameter_tolerance,
+        };
         let mut summary = BundleSummary {
             iterations: 0,
             initial_cost: f64::NAN,
@@ -615,97 +581,18 @@ impl BundleProblem {
             seconds: 0.0,
             reduced_dimension: layout.n_reduced,
         };
-        let Some(mut normal) = self.normal_equations(&layout, &opts.loss) else {
-            summary.termination = "a point is behind its camera at the starting point".into();
-            return summary;
-        };
-        summary.initial_cost = normal.cost;
-        let mut lambda = 1e-4;
-        let mut nu = 2.0;
-        let mut last_relative_decrease = f64::INFINITY;
-        for it in 0..opts.max_iterations {
-            summary.iterations = it + 1;
-            let gmax = normal
-                .gr
-                .amax()
-                .max(normal.ge.iter().map(|g| g.amax()).fold(0.0, f64::max));
-            if gmax < opts.gradient_tolerance {
-                summary.converged = true;
-                summary.termination = "gradient below tolerance".into();
-                break;
+        let fit = lm::minimize(&mut problem, self.clone(), &rules);
+        match fit {
+            Some(fit) if fit.termination != Termination::NotLinearizable => {
+                summary.iterations = fit.iterations;
+                summary.initial_cost = fit.initial_cost;
+                summary.final_cost = fit.cost;
+                summary.converged = fit.converged;
+                summary.termination = fit.termination.to_string();
+                *self = fit.point;
             }
-            let Some((dr, de)) = self.solve_step(&layout, &normal, lambda) else {
-                lambda *= nu;
-                nu *= 2.0;
-                if lambda > 1e20 {
-                    summary.termination = "damping exhausted (singular system)".into();
-                    break;
-                }
-                continue;
-            };
-            let candidate = self.apply_step(&layout, &dr, &de);
-            let new_cost = candidate.cost(&opts.loss);
-            // Predicted decrease of the damped model: ½ δᵀ(λ D δ − g).
-            let mut pred = 0.0;
-            for i in 0..layout.n_reduced {
-                pred += dr[i] * (lambda * normal.hrr[(i, i)].max(1e-9) * dr[i] - normal.gr[i]);
-            }
-            for (e, d) in de.iter().enumerate() {
-                for k in 0..layout.elim_size[e] {
-                    pred +=
-                        d[k] * (lambda * normal.hee[e][(k, k)].max(1e-9) * d[k] - normal.ge[e][k]);
-                }
-            }
-            pred *= 0.5;
-            let rho = (normal.cost - new_cost) / pred.max(1e-300);
-            if new_cost.is_finite() && new_cost <= normal.cost && rho > 0.0 {
-                let step_norm =
-                    (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt();
-                let decrease = normal.cost - new_cost;
-                last_relative_decrease = decrease / normal.cost.max(1e-300);
-                // Linearise at the candidate before accepting it: a point on the edge of
-                // a camera's depth range can evaluate but not linearise; then reject.
-                let Some(cand_normal) = candidate.normal_equations(&layout, &opts.loss) else {
-                    lambda *= nu;
-                    nu *= 2.0;
-                    continue;
-                };
-                *self = candidate;
-                normal = cand_normal;
-                lambda *= f64::max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0).powi(3));
-                nu = 2.0;
-                if decrease <= opts.function_tolerance * normal.cost.max(1e-300)
-                    || normal.cost < 1e-24
-                {
-                    summary.converged = true;
-                    summary.termination = "cost decrease below tolerance".into();
-                    break;
-                }
-                if step_norm < opts.parameter_tolerance * (1.0 + self.parameter_norm()) {
-                    summary.converged = true;
-                    summary.termination = "step below tolerance".into();
-                    break;
-                }
-            } else {
-                lambda *= nu;
-                nu *= 2.0;
-                if lambda > 1e20 {
-                    // No step decreases the cost any more: a minimum to machine precision.
-                    summary.converged = true;
-                    summary.termination = "no further decrease possible".into();
-                    break;
-                }
-            }
+            _ => summary.termination = "a point is behind its camera at the starting point".into(),
         }
-        if summary.termination.is_empty() {
-            // Ceres' convergence test (relative decrease < 1e-6): still creeping along a
-            // flat direction is converged, not failed.
-            summary.converged = last_relative_decrease < 1e-6;
-            summary.termination = format!(
-                "iteration limit reached (last relative decrease {last_relative_decrease:.1e})"
-            );
-        }
-        summary.final_cost = normal.cost;
         summary.seconds = start.elapsed().as_secs_f64();
         summary
     }
@@ -853,6 +740,134 @@ impl DenseRows {
             self.buf.rows_mut(0, self.count).fill(0.0);
             self.count = 0;
         }
+    }
+}
+
+/// A step of the rig bundle: the reduced blocks, then each eliminated block.
+type RigStep = (DVector<f64>, Vec<Vector6<f64>>);
+
+/// The rig bundle as a problem of the LM driver: a point is a whole bundle state.
+struct RigFit<'a> {
+    layout: &'a Layout,
+    loss: Loss,
+    parameter_tolerance: f64,
+}
+
+impl<'a> LeastSquares for RigFit<'a> {
+    type Point = BundleProblem;
+    type Normal = Reduced<'a>;
+
+    fn linearize(&mut self, x: &BundleProblem) -> Option<Reduced<'a>> {
+        let normal = x.normal_equations(self.layout, &self.loss)?;
+        Some(Reduced {
+            layout: self.layout,
+            normal,
+        })
+    }
+
+    fn cost(&mut self, x: &BundleProblem) -> Option<f64> {
+        Some(x.cost(&self.loss))
+    }
+
+    fn retract(&self, x: &BundleProblem, step: &RigStep) -> BundleProblem {
+        x.apply_step(self.layout, &step.0, &step.1)
+    }
+
+    /// A step small against the parameters (relative, as Ceres' parameter tolerance).
+    fn settled(&self, x: &BundleProblem, step: &RigStep) -> bool {
+        Reduced::step_norm(step) < self.parameter_tolerance * (1.0 + x.parameter_norm())
+    }
+}
+
+/// The rig bundle's normal equations, solved by eliminating the points and rigid
+/// bodies (Schur complement) and factoring the reduced system of the rig and camera
+/// poses.
+struct Reduced<'a> {
+    layout: &'a Layout,
+    normal: Normal,
+}
+
+impl NormalEquations for Reduced<'_> {
+    type Step = RigStep;
+
+    fn cost(&self) -> Option<f64> {
+        Some(self.normal.cost)
+    }
+
+    fn gradient_max(&self) -> f64 {
+        let n = &self.normal;
+        n.gr.amax()
+            .max(n.ge.iter().map(|g| g.amax()).fold(0.0, f64::max))
+    }
+
+    /// The step of the reduced blocks from the Schur complement, then the eliminated
+    /// blocks' by back-substitution.
+    fn solve_damped(&self, lambda: f64, floor: f64) -> Option<RigStep> {
+        let (layout, n) = (self.layout, &self.normal);
+        let nr = layout.n_reduced;
+        let mut s = n.hrr.clone();
+        for i in 0..nr {
+            s[(i, i)] += lambda * n.hrr[(i, i)].max(floor);
+        }
+        let mut rhs = -n.gr.clone();
+        let mut einv = Vec::with_capacity(n.hee.len());
+        let mut dense = DenseRows::new(nr);
+        for (e, hee) in n.hee.iter().enumerate() {
+            let size = layout.elim_size[e];
+            let mut h = *hee;
+            for i in 0..size {
+                h[(i, i)] += lambda * hee[(i, i)].max(floor);
+            }
+            let inv = invert_block(&h, size)?;
+            eliminate_block(
+                &mut s,
+                &mut dense,
+                Some(&mut rhs),
+                &layout.couplings[e],
+                &n.her[e],
+                &inv,
+                &n.ge[e],
+                size,
+            );
+            einv.push(inv);
+        }
+        dense.flush(&mut s);
+        let dr = if nr > 0 {
+            s.cholesky()?.solve(&rhs)
+        } else {
+            DVector::zeros(0)
+        };
+        let mut de = Vec::with_capacity(n.hee.len());
+        for (e, inv) in einv.iter().enumerate() {
+            let mut b = -n.ge[e];
+            for (ca, &(oa, za)) in layout.couplings[e].iter().enumerate() {
+                let mut x = Vector6::zeros();
+                for k in 0..za {
+                    x[k] = dr[oa + k];
+                }
+                b -= n.her[e][ca] * x;
+            }
+            de.push(inv * b);
+        }
+        Some((dr, de))
+    }
+
+    fn predicted_decrease(&self, (dr, de): &RigStep, lambda: f64, floor: f64) -> f64 {
+        let n = &self.normal;
+        let mut pred = 0.0;
+        for i in 0..self.layout.n_reduced {
+            pred += dr[i] * (lambda * n.hrr[(i, i)].max(floor) * dr[i] - n.gr[i]);
+        }
+        for (e, d) in de.iter().enumerate() {
+            for k in 0..self.layout.elim_size[e] {
+                pred += d[k] * (lambda * n.hee[e][(k, k)].max(floor) * d[k] - n.ge[e][k]);
+            }
+        }
+        0.5 * pred
+    }
+
+    fn step_norm((dr, de): &RigStep) -> f64 {
+        (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt()
     }
 }
 

@@ -11,9 +11,11 @@
 //!
 //! Dense normal equations: a ring of 8 targets and 8 auxiliary views has 90 unknowns.
 
+use nalgebra::Dyn;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix3};
 use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use rigcal_core::target::line_layout::{Axis, LineLayout, Print};
+use rigcal_solve::lm::{minimize, Damping, Dense, LeastSquares, Rules};
 use rigcal_solve::Loss;
 
 /// Points measured on one feature line in one view (undistorted pixels).
@@ -256,74 +258,54 @@ impl LineBundle {
         }
     }
 
-    /// Levenberg–Marquardt with Marquardt's diagonal scaling.
+    /// Levenberg–Marquardt (the driver of `rigcal_solve::lm`, Marquardt's damping) over
+    /// the free poses, at most `max_iterations` linear solves.
     pub fn solve(&mut self, loss: &Loss, max_iterations: usize) -> LineSummary {
-        let initial_cost = self.cost(loss);
-        let mut cost = initial_cost;
-        let mut lambda = 1e-4;
-        let mut iterations = 0;
-        let mut termination = "maximum iterations reached".to_string();
-        let mut converged = false;
         if self.parameters() == 0 {
+            let cost = self.cost(loss);
             return LineSummary {
-                iterations,
-                initial_cost,
+                iterations: 0,
+                initial_cost: cost,
                 final_cost: cost,
                 converged: true,
                 termination: "nothing to estimate".into(),
             };
         }
-        'outer: while iterations < max_iterations {
-            iterations += 1;
-            let (h, g, _, _) = self.normal_equations(loss);
-            if g.amax() < 1e-14 * (1.0 + cost) {
-                converged = true;
-                termination = "gradient below tolerance".into();
-                break;
-            }
-            loop {
-                let mut a = h.clone();
-                for i in 0..a.nrows() {
-                    a[(i, i)] += lambda * h[(i, i)].max(1e-9);
-                }
-                let Some(chol) = a.cholesky() else {
-                    lambda *= 10.0;
-                    if lambda > 1e12 {
-                        termination = "normal equations singular".into();
-                        break 'outer;
-                    }
-                    continue;
-                };
-                let delta = -chol.solve(&g);
-                let mut trial = self.clone();
-                trial.apply(&delta);
-                let new_cost = trial.cost(loss);
-                if new_cost.is_finite() && new_cost <= cost {
-                    let decrease = cost - new_cost;
-                    *self = trial;
-                    cost = new_cost;
-                    lambda = (lambda / 3.0).max(1e-12);
-                    if decrease <= 1e-12 * cost.max(1e-300) || delta.amax() < 1e-12 {
-                        converged = true;
-                        termination = "cost change below tolerance".into();
-                        break 'outer;
-                    }
-                    break;
-                }
-                lambda *= 4.0;
-                if lambda > 1e12 {
-                    converged = true;
-                    termination = "no further decrease".into();
-                    break 'outer;
-                }
-            }
-        }
+        let rules = Rules {
+            max_iterations,
+            damping: Damping::Marquardt {
+                raise: 4.0,
+                lower: 1.0 / 3.0,
+                min_lambda: 1e-12,
+            },
+            initial_lambda: 1e-4,
+            diagonal_floor: 1e-9,
+            tries: usize::MAX,
+            max_lambda: 1e12,
+            function_tolerance: 1e-12,
+            min_step: 1e-12,
+            gradient_tolerance: 1e-14,
+            creep_tolerance: 0.0,
+        };
+        let mut problem = LineFit { loss: *loss };
+        // The cost is defined everywhere (a line that does not project costs a fixed
+        // penalty), so the fit always starts; were it not, that is said, not hidden.
+        let Some(fit) = minimize(&mut problem, self.clone(), &rules) else {
+            return LineSummary {
+                iterations: 0,
+                initial_cost: f64::NAN,
+                final_cost: f64::NAN,
+                converged: false,
+                termination: "the cost is undefined at the starting point".into(),
+            };
+        };
+        *self = fit.point;
         LineSummary {
-            iterations,
-            initial_cost,
-            final_cost: cost,
-            converged,
-            termination,
+            iterations: fit.iterations,
+            initial_cost: fit.initial_cost,
+            final_cost: fit.cost,
+            converged: fit.converged,
+            termination: fit.termination.to_string(),
         }
     }
 
@@ -339,6 +321,31 @@ impl LineBundle {
         let sigma2 = sum / (count - n) as f64;
         let inv = h.cholesky()?.inverse();
         Some((inv * sigma2, sigma2.sqrt()))
+    }
+}
+
+/// The line bundle as a problem of the LM driver: a point is a whole bundle state.
+struct LineFit {
+    loss: Loss,
+}
+
+impl LeastSquares for LineFit {
+    type Point = LineBundle;
+    type Normal = Dense<Dyn>;
+
+    fn linearize(&mut self, x: &LineBundle) -> Option<Dense<Dyn>> {
+        let (h, g, _, _) = x.normal_equations(&self.loss);
+        Some(Dense::new(h, g))
+    }
+
+    fn cost(&mut self, x: &LineBundle) -> Option<f64> {
+        Some(x.cost(&self.loss))
+    }
+
+    fn retract(&self, x: &LineBundle, step: &DVector<f64>) -> LineBundle {
+        let mut out = x.clone();
+        out.apply(step);
+        out
     }
 }
 
