@@ -237,7 +237,7 @@ def main():
             ours = cost(doc, r["final"])
             start = cost(doc, doc["start"])
             rows.append(
-                f"{k:>5} {'rigcal (1 thread)':<28} {r['seconds']:>8.3f} {r['iterations']:>6} "
+                f"{k:>5} {f'rigcal ({os.cpu_count()} cores)':<28} {r['seconds']:>8.3f} {r['iterations']:>6} "
                 f"{r['final_cost']:>14.6e} {ours:>14.6e} {1.0:>10.4f} {0.0:>8.3f}"
             )
             for t in threads:
