@@ -588,14 +588,7 @@ impl BundleProblem {
             n.cost += cost;
         }
         for (h, &(oa, za, ob, zb)) in pair.iter().zip(&layout.pairs) {
-            for i in 0..za {
-                for j in 0..zb {
-                    n.hrr[(oa + i, ob + j)] += h[(i, j)];
-                    if oa != ob {
-                        n.hrr[(ob + j, oa + i)] += h[(i, j)];
-                    }
-                }
-            }
+            add_symmetric_block(&mut n.hrr, (oa, za), (ob, zb), h);
         }
         let zero = (Slot::Fixed, 0, J26::zeros());
         for d in &self.distances {
@@ -685,16 +678,8 @@ impl BundleProblem {
                         }
                     }
                     (Slot::Reduced(oa), Slot::Reduced(ob)) => {
-                        let Some(hrr) = n.hrr.as_deref_mut() else {
-                            continue;
-                        };
-                        for i in 0..za {
-                            for j in 0..zb {
-                                hrr[(oa + i, ob + j)] += h[(i, j)];
-                                if oa != ob {
-                                    hrr[(ob + j, oa + i)] += h[(i, j)];
-                                }
-                            }
+                        if let Some(hrr) = n.hrr.as_deref_mut() {
+                            add_symmetric_block(hrr, (oa, za), (ob, zb), &h);
                         }
                     }
                     (Slot::Elim(e), Slot::Elim(f)) if e == f => n.hee[e - n.first_elim] += h,
@@ -969,6 +954,24 @@ impl DenseRows {
             );
             self.buf.rows_mut(0, self.count).fill(0.0);
             self.count = 0;
+        }
+    }
+}
+
+/// Add the block `h` (rows: the `za` parameters at `oa`, columns: the `zb` at `ob`) to
+/// the symmetric matrix `hrr`, and its transpose unless it is a diagonal block.
+fn add_symmetric_block(
+    hrr: &mut DMatrix<f64>,
+    (oa, za): (usize, usize),
+    (ob, zb): (usize, usize),
+    h: &Matrix6<f64>,
+) {
+    for i in 0..za {
+        for j in 0..zb {
+            hrr[(oa + i, ob + j)] += h[(i, j)];
+            if oa != ob {
+                hrr[(ob + j, oa + i)] += h[(i, j)];
+            }
         }
     }
 }
