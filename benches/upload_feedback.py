@@ -14,7 +14,8 @@ at full speed (every PUT as soon as the previous answered) and at a capture-like
 `rigcal calibrate` on the same capture directory (every image detected by the job).
 
 Usage: python3 benches/upload_feedback.py [--bin target/release/rigcal] [--size 1920x1080]
-       [--seed 5] [--pace 0.5] [--capture DIR] [--postgres URL --s3-bucket B]
+       [--seed 5] [--pace 0.5] [--capture DIR] [--quality accurate|fast]
+       [--postgres URL --s3-bucket B]
 Standard library only.
 """
 import argparse, json, os, subprocess, tempfile, time
@@ -38,7 +39,8 @@ def run(a, capture, pace):
     env = store_env(a, "feedback")
     key = subprocess.check_output([a.bin, "apikey", "create", "--tenant", "line", "--data-dir", data],
                                   env=env, stderr=subprocess.DEVNULL).decode().strip()
-    srv = subprocess.Popen([a.bin, "serve", "--bind", "127.0.0.1:0", "--data-dir", data],
+    srv = subprocess.Popen([a.bin, "serve", "--bind", "127.0.0.1:0", "--data-dir", data,
+                            "--upload-detect-quality", a.quality],
                            env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL)
     try:
         base = srv.stdout.readline().decode().strip().removeprefix("rigcal listening on ")
@@ -62,7 +64,8 @@ def run(a, capture, pace):
             assert st == 409, check
             time.sleep(0.02)
         t_check = time.monotonic() - last
-        st, job = req("POST", f"{base}/v1/jobs", key, json.dumps({"session_id": sid}).encode())
+        body = {"session_id": sid, "options": {"detection": {"quality": a.quality}}}
+        st, job = req("POST", f"{base}/v1/jobs", key, json.dumps(body).encode())
         assert st == 202, job
         while True:
             st, j = req("GET", f"{base}/v1/jobs/{job['id']}", key)
@@ -89,6 +92,8 @@ def main():
     ap.add_argument("--seed", type=int, default=5)
     ap.add_argument("--pace", type=float, default=0.5, help="seconds between frames of the paced run")
     ap.add_argument("--capture", help="a capture directory rendered before (skips the ~3 min render)")
+    ap.add_argument("--quality", default="accurate", choices=["accurate", "fast"],
+                    help="detection quality of the uploads, the job and `rigcal calibrate`")
     add_args(ap)
     a = ap.parse_args()
     capture = a.capture
@@ -96,9 +101,11 @@ def main():
         capture = tempfile.mkdtemp(prefix="rigcal-capture-")
         subprocess.check_call([a.bin, "synth", "--preset", "car-hall", "--images", "--size", a.size,
                                "--seed", str(a.seed), "--out", capture], stderr=subprocess.DEVNULL)
-    print(f"car-hall {a.size}, seed {a.seed}, 72 JPEGs; {describe(a)}; 1 embedded worker, {os.cpu_count()} cores")
+    print(f"car-hall {a.size}, seed {a.seed}, 72 JPEGs; {describe(a)}; 1 embedded worker, "
+          f"{os.cpu_count()} cores; detection {a.quality}")
     t = time.monotonic()
-    out = subprocess.run([a.bin, "calibrate", os.path.join(capture, "session.json")],
+    out = subprocess.run([a.bin, "calibrate", os.path.join(capture, "session.json"),
+                          "--detect-quality", a.quality],
                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     print(f"rigcal calibrate (detects every image itself): {time.monotonic() - t:.2f} s (exit {out.returncode})")
     for name, pace in (("full speed", 0.0), (f"paced, {a.pace} s per frame", a.pace)):

@@ -3,7 +3,8 @@
 //! `perf record`): `cargo run --release --example detect_profile -- DIR [N] [edge-only]`
 //! detects the first N frames of every camera (all when omitted) and prints the median
 //! ms per image (the fastest of `REPEAT` runs each, default 1), the share of legible tags
-//! found and the corner RMS; `edge-only` turns the whole-tag fits off.
+//! found and the corner RMS; `edge-only` turns the whole-tag fits off, `decimated` the
+//! full-resolution searches, `fast` both (`Quality::Fast`).
 use rigcal_detect::gray::Gray;
 use rigcal_detect::{detect_tags, DetectOptions};
 use std::collections::BTreeMap;
@@ -28,8 +29,14 @@ fn main() {
         serde_json::from_slice(&std::fs::read(dir.join("corners.json")).expect("read"))
             .expect("json");
     let mut opts = DetectOptions::default();
-    if a.get(3).is_some_and(|q| q == "edge-only") {
-        opts.whole_tag_fit = false;
+    match a.get(3).map(String::as_str) {
+        Some("edge-only") => opts.whole_fit_below = 0.0,
+        Some("fast") => opts = DetectOptions::of_quality(rigcal_detect::Quality::Fast),
+        Some("decimated") => opts.full_resolution = false,
+        _ => {}
+    }
+    if let Some(px) = std::env::var("FIT_BELOW").ok().and_then(|v| v.parse().ok()) {
+        opts.whole_fit_below = px;
     }
     let repeat: usize = std::env::var("REPEAT")
         .ok()

@@ -8,8 +8,13 @@ fn main() {
     let s =
         rigcal_core::session::parse_session(&std::fs::read(&path).expect("read")).expect("valid");
     let dir = path.parent().expect("a directory").to_path_buf();
-    let (detected, report) = detect_session(&s, &DirSource(dir), &rigcal_engine::pipeline::Silent)
-        .unwrap_or_else(|e| panic!("{e:?}"));
+    let (detected, report) = detect_session(
+        &s,
+        &DirSource(dir),
+        rigcal_core::result::DetectionQuality::Accurate,
+        &rigcal_engine::pipeline::Silent,
+    )
+    .unwrap_or_else(|e| panic!("{e:?}"));
     std::fs::write(
         &a[2],
         serde_json::to_vec_pretty(&detected.manifest).expect("json"),

@@ -105,6 +105,7 @@ async fn a_bundle_carries_the_images_at_their_manifest_paths() {
     assert!(!found.contains_key("result.json"));
     let job_json: Value = serde_json::from_slice(&found["job.json"]).unwrap();
     assert_eq!(job_json["options"]["loss"], "huber");
+    assert_eq!(job_json["options"]["detection"]["quality"], "accurate");
     assert_eq!(job_json["status"], "queued");
     // Another tenant does not see it.
     let other = client(&api_key(dir.path(), "other"));

@@ -8,11 +8,12 @@ mod common;
 
 use common::*;
 use rigcal_calib::check::capture_check;
+use rigcal_core::result::DetectionQuality;
 use rigcal_core::session::parse_session;
 use rigcal_engine::pipeline::detection::{detect_session, MemorySource};
 use rigcal_engine::pipeline::Silent;
 use rigcal_synth::hall::{hall, Hall, Nuisance};
-use serde_json::Value;
+use serde_json::{json, Value};
 use std::collections::{BTreeSet, HashMap};
 use std::time::{Duration, Instant};
 
@@ -103,7 +104,13 @@ async fn check_not_ready(c: &reqwest::Client, s: &Server, sid: &str, detail: &st
 /// detects it from the same bytes.
 fn expected_check(manifest: &Value, images: &HashMap<String, Vec<u8>>) -> Value {
     let session = parse_session(&serde_json::to_vec(manifest).unwrap()).unwrap();
-    let (detected, _) = detect_session(&session, &MemorySource(images.clone()), &Silent).unwrap();
+    let (detected, _) = detect_session(
+        &session,
+        &MemorySource(images.clone()),
+        DetectionQuality::Accurate,
+        &Silent,
+    )
+    .unwrap();
     serde_json::to_value(capture_check(&detected)).unwrap()
 }
 
@@ -353,4 +360,68 @@ async fn a_job_does_not_wait_for_every_pending_upload() {
         "the job waited for the whole upload: {view}"
     );
     eprintln!("job done with {detected:?} of {queued:?} uploaded images detected");
+}
+
+/// Uploads detected at `--upload-detect-quality fast` serve a `fast` job, which reuses
+/// them, but not an `accurate` one, which detects every image again; each result says
+/// the quality its job asked for.
+#[tokio::test]
+async fn a_job_reuses_only_upload_detections_as_accurate_as_it_asked() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(
+        dir.path(),
+        &["--workers", "1", "--upload-detect-quality", "fast"],
+    );
+    let c = client(&key);
+    let manifest = image_session(2, 32, 24);
+    let files: Vec<(String, Vec<u8>)> = std::iter::once((
+        "session.json".to_string(),
+        serde_json::to_vec(&manifest).unwrap(),
+    ))
+    .chain((0..2).flat_map(|k| {
+        [("front", 1), ("rear", 2)]
+            .map(|(cam, seed)| (format!("{cam}/{k:04}.png"), png(32, 24, seed + k as u8)))
+    }))
+    .collect();
+    let v = create_archive_session(&c, &s, &files).await;
+    let sid = v["id"].as_str().unwrap().to_string();
+    let t = Instant::now();
+    while get_json(&c, &s, &format!("/v1/sessions/{sid}")).await["images_detected"] != 4 {
+        assert!(t.elapsed() < MIN, "uploads not detected");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let detection_of = |quality: Option<&'static str>| {
+        let (c, s, sid) = (&c, &s, &sid);
+        async move {
+            let mut body = json!({"session_id": sid});
+            if let Some(q) = quality {
+                body["options"] = json!({"detection": {"quality": q}});
+            }
+            let r = c.post(s.url("/v1/jobs")).json(&body).send().await.unwrap();
+            assert_eq!(r.status(), 202);
+            let job: Value = r.json().await.unwrap();
+            let id = job["id"].as_str().unwrap();
+            let done = wait_job(c, s, id, MIN).await;
+            // Gradients with no tag: the job fails, but its document reports detection.
+            assert_eq!(done["error"]["code"], "camera_not_observed", "{done}");
+            get_json(c, s, &format!("/v1/jobs/{id}/result")).await["detection"].clone()
+        }
+    };
+    let fast = detection_of(Some("fast")).await;
+    assert_eq!(
+        (fast["quality"].as_str(), fast["images_reused"].as_u64()),
+        (Some("fast"), Some(4)),
+        "{fast}"
+    );
+    let accurate = detection_of(None).await;
+    assert_eq!(
+        (
+            accurate["quality"].as_str(),
+            accurate["images_reused"].as_u64(),
+            accurate["images_total"].as_u64()
+        ),
+        (Some("accurate"), Some(0), Some(4)),
+        "{accurate}"
+    );
 }

@@ -551,6 +551,16 @@ async fn every_request_error_is_a_problem_with_its_field_and_changes_nothing() {
     .await;
     assert_eq!(p["field"], "options.loss");
     let p = expect_problem(
+        pj(json!({"session_id": sid, "options": {"detection": {"quality": "quick"}}}))
+            .await
+            .unwrap(),
+        422,
+        "invalid-field",
+    )
+    .await;
+    assert_eq!(p["field"], "options.detection.quality");
+    assert!(p["detail"].as_str().unwrap().contains("fast"), "{p}");
+    let p = expect_problem(
         pj(json!({"session_id": sid, "priority": 3})).await.unwrap(),
         422,
         "invalid-field",

@@ -18,7 +18,8 @@ Times are the detection call only (image already decoded), median per image.
 
 runs the same detectors on every image of a capture written by `rigcal synth --preset
 car-hall --images --out DIR` (dense 1080p JPEG scenes: AprilGrids and wall tags on
-textured walls), rigcal with `--threads 1` and with all cores, against the capture's
+textured walls), rigcal with `--threads 1` and with all cores at `--detect-quality
+accurate` and with one thread at `fast`, against the capture's
 corners.json: share of fully visible tags found, corners more than 1 px off (wrong),
 corner RMS of the others, median ms per image.
 """
@@ -62,13 +63,15 @@ def capture_main(a):
     aruco = cv2.aruco.ArucoDetector(
         cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11), params)
     results = {}
-    for threads in ["1", str(os.cpu_count() or 1)]:
-        name = f"rigcal ({threads} thread{'s' if threads != '1' else ''})"
+    cores = str(os.cpu_count() or 1)
+    for threads, quality in [("1", "accurate"), (cores, "accurate"), ("1", "fast")]:
+        name = f"rigcal {quality} ({threads} thread{'s' if threads != '1' else ''})"
         for cam in cams:
             entries = [e for e in truth if e["camera"] == cam]
             cf = os.path.join(d, f"camera.{cam}.peer.json")
             json.dump(cams[cam], open(cf, "w"))
-            cmd = [a.rigcal, "detect", "--target", tf, "--camera", cf, "--threads", threads]
+            cmd = [a.rigcal, "detect", "--target", tf, "--camera", cf, "--threads", threads,
+                   "--detect-quality", quality]
             cmd += [os.path.join(d, e["path"]) for e in entries]
             out = json.loads(subprocess.run(cmd, capture_output=True, check=False).stdout)
             out = out if isinstance(out, list) else [out]
@@ -98,7 +101,7 @@ def capture_main(a):
                     pts[f"tag:{tid}:{k}"] = tuple(c)
             results[(e["path"], name)] = (pts, ms)
     names = sorted({k[1] for k in results}, key=lambda n: (not n.startswith("rigcal"), n))
-    print(f"\n{'detector':<20} {'images':>6} {'tags':>6} {'found %':>8} {'wrong':>6} "
+    print(f"\n{'detector':<28} {'images':>6} {'tags':>6} {'found %':>8} {'wrong':>6} "
           f"{'rms px':>8} {'med ms':>8}")
     for name in names:
         total = found = wrong = 0
@@ -121,7 +124,7 @@ def capture_main(a):
                     else:
                         err.append(x)
         rms = float(np.sqrt(np.mean(np.square(err)))) if err else float("nan")
-        print(f"{name:<20} {len(truth):>6} {total:>6} {100 * found / max(1, total):>8.2f} "
+        print(f"{name:<28} {len(truth):>6} {total:>6} {100 * found / max(1, total):>8.2f} "
               f"{wrong:>6} {rms:>8.4f} {statistics.median(ms):>8.1f}")
     return 0
 

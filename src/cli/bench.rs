@@ -48,6 +48,9 @@ pub enum Command {
         /// Also write the trials as JSON here.
         #[arg(long)]
         json: Option<PathBuf>,
+        /// accurate | fast
+        #[arg(long, default_value = "accurate")]
+        detect_quality: rigcal_core::result::DetectionQuality,
     },
     /// Vanishing method on Wu's Table 2 ring: chainwise vs global RMS errors per camera.
     Ring {
@@ -174,9 +177,11 @@ pub fn run(c: Command) -> Result<i32> {
             seed,
             size,
             json,
+            detect_quality,
         } => {
-            let rows = rigcal_bench::capture::capture_trials(&preset, trials, seed, size)
-                .map_err(|e| anyhow!(e))?;
+            let rows =
+                rigcal_bench::capture::capture_trials(&preset, trials, seed, size, detect_quality)
+                    .map_err(|e| anyhow!(e))?;
             rigcal_bench::capture::print_table(&preset, &rows);
             if let Some(path) = json {
                 std::fs::write(&path, serde_json::to_vec_pretty(&rows)?)

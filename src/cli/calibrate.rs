@@ -1,6 +1,7 @@
 //! `rigcal calibrate`: a session file in, the result document (or an export) out.
 
 use anyhow::{anyhow, Context, Result};
+use rigcal_core::result::DetectionQuality;
 use rigcal_core::session::parse_session;
 use rigcal_core::vehicle::VehicleModel;
 use rigcal_engine::export::{render_in, ExportError, Format, Frame};
@@ -34,6 +35,10 @@ pub struct Args {
     /// Scale of the robust loss, pixels.
     #[arg(long, default_value_t = 2.0)]
     loss_scale: f64,
+    /// Detection of a session of images: accurate | fast (docs/performance.md,
+    /// "Detection quality").
+    #[arg(long, default_value = "accurate")]
+    detect_quality: DetectionQuality,
 }
 
 /// A job bundle unpacked: its directory (kept while it lives) and the job's options.
@@ -41,6 +46,7 @@ struct Bundle {
     dir: tempfile::TempDir,
     loss: LossKind,
     loss_scale: f64,
+    quality: DetectionQuality,
 }
 
 /// Unpack `path` if it is a tar (a job bundle); `None` for anything else.
@@ -67,23 +73,40 @@ fn unpack_bundle(path: &std::path::Path) -> Result<Option<Bundle>> {
     let loss_scale = job["options"]["loss_scale"].as_f64().ok_or_else(|| {
         anyhow!("the bundle's job.json: options.loss_scale, a number, is missing")
     })?;
+    // Bundles of jobs from before the option have none: those ran at `accurate`.
+    let quality = match &job["options"]["detection"]["quality"] {
+        serde_json::Value::Null => DetectionQuality::Accurate,
+        v => v
+            .as_str()
+            .ok_or_else(|| {
+                anyhow!("the bundle's job.json: options.detection.quality is not a string")
+            })?
+            .parse::<DetectionQuality>()
+            .map_err(|e| anyhow!("the bundle's job.json options.detection.quality: {e}"))?,
+    };
     Ok(Some(Bundle {
         dir,
         loss,
         loss_scale,
+        quality,
     }))
 }
 
 pub fn run(a: Args) -> Result<i32> {
     let bundle =
         unpack_bundle(&a.session).with_context(|| format!("reading {}", a.session.display()))?;
-    let (manifest, loss, loss_scale) = match &bundle {
-        Some(b) => (b.dir.path().join("session.json"), b.loss, b.loss_scale),
-        None => (a.session.clone(), a.loss, a.loss_scale),
+    let (manifest, loss, loss_scale, quality) = match &bundle {
+        Some(b) => (
+            b.dir.path().join("session.json"),
+            b.loss,
+            b.loss_scale,
+            b.quality,
+        ),
+        None => (a.session.clone(), a.loss, a.loss_scale, a.detect_quality),
     };
     if bundle.is_some() {
         eprintln!(
-            "replaying the job bundle with its options (loss {loss:?}, scale {loss_scale} px)"
+            "replaying the job bundle with its options (loss {loss:?}, scale {loss_scale} px, detection {quality})"
         );
     }
     let model = match &a.vehicle_model {
@@ -106,8 +129,11 @@ pub fn run(a: Args) -> Result<i32> {
     let bytes =
         std::fs::read(&manifest).with_context(|| format!("reading {}", manifest.display()))?;
     let session = parse_session(&bytes).map_err(|e| anyhow!("session: {e}"))?;
-    let opts = CalibOptions::from_loss(loss, loss_scale)
-        .map_err(|e| anyhow!("--{}: {}", e.field.replace('_', "-"), e.expected))?;
+    let opts = CalibOptions {
+        detection: quality,
+        ..CalibOptions::from_loss(loss, loss_scale)
+            .map_err(|e| anyhow!("--{}: {}", e.field.replace('_', "-"), e.expected))?
+    };
     // Images are named relative to the session file.
     let dir = manifest
         .parent()

@@ -4,7 +4,7 @@ use anyhow::{anyhow, Context, Result};
 use clap::builder::RangedU64ValueParser;
 use rigcal_core::session::{camera_from_spec, CameraSpec, TargetSpec};
 use rigcal_core::target::line_layout::Print as LinePrint;
-use rigcal_detect::{detect_tags, DetectOptions};
+use rigcal_detect::{detect_tags, DetectOptions, Quality};
 use rigcal_engine::pipeline::detection::{decode_gray, DEFAULT_MAX_IMAGE_PIXELS};
 use serde_json::{json, Value};
 use std::path::{Path, PathBuf};
@@ -27,6 +27,9 @@ pub struct Args {
     /// single core).
     #[arg(long, value_parser = RangedU64ValueParser::<usize>::new().range(1..=256))]
     threads: Option<usize>,
+    /// accurate | fast (docs/performance.md, "Detection quality").
+    #[arg(long, default_value = "accurate")]
+    detect_quality: Quality,
 }
 
 fn read(p: &Path) -> Result<Vec<u8>> {
@@ -96,7 +99,7 @@ pub fn run(a: Args) -> Result<i32> {
             } else {
                 let opts = DetectOptions {
                     threads,
-                    ..DetectOptions::default()
+                    ..DetectOptions::of_quality(a.detect_quality)
                 };
                 let d = detect_tags(&gray, &targets, camera.as_ref(), &opts)?;
                 serde_json::to_value(&d).map_err(|e| e.to_string())?

@@ -4,6 +4,7 @@
 use super::StoreArgs;
 use anyhow::Result;
 use clap::builder::RangedU64ValueParser;
+use rigcal_core::result::DetectionQuality;
 use rigcal_service::jobs::worker::{run_standalone, WorkerConfig};
 use std::time::Duration;
 
@@ -20,6 +21,10 @@ pub struct JobArgs {
     #[arg(long, env = "RIGCAL_MAX_IMAGE_PIXELS", value_parser = RangedU64ValueParser::<u64>::new().range(1..),
           default_value_t = WorkerConfig::default().max_image_pixels)]
     pub max_image_pixels: u64,
+    /// Quality uploaded images are detected at: accurate | fast. Jobs reuse an
+    /// `accurate` outcome at either quality, a `fast` one only at `fast`.
+    #[arg(long, env = "RIGCAL_UPLOAD_DETECT_QUALITY", default_value = "accurate")]
+    pub upload_detect_quality: DetectionQuality,
     /// Deliver webhooks to loopback, private and link-local addresses too (refused by
     /// default: a tenant could otherwise make the server call its own network).
     #[arg(long, env = "RIGCAL_ALLOW_PRIVATE_WEBHOOKS")]
@@ -32,6 +37,7 @@ impl JobArgs {
             workers,
             lease: Duration::from_secs(self.lease_seconds),
             max_image_pixels: self.max_image_pixels,
+            upload_detect_quality: self.upload_detect_quality,
             webhooks: rigcal_service::webhooks::WebhookConfig {
                 allow_private: self.allow_private_webhooks,
                 ..Default::default()

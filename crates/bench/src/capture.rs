@@ -3,7 +3,7 @@
 //! the detection against each image's true corners and the result against the truth,
 //! with the error of every translation axis in units of its reported σ.
 
-use rigcal_core::result::{ExtrinsicValue, Status};
+use rigcal_core::result::{DetectionQuality, ExtrinsicValue, Status};
 use rigcal_core::session::parse_session;
 use rigcal_engine::pipeline::detection::{detect_session, MemorySource};
 use rigcal_engine::pipeline::{calibrate_detected, CalibOptions, Silent};
@@ -31,12 +31,14 @@ pub struct CaptureTrial {
     pub total_s: f64,
 }
 
-/// `trials` captures of `preset` (hall seeds `seed..`), images of `size`.
+/// `trials` captures of `preset` (hall seeds `seed..`), images of `size`, detected at
+/// `quality`.
 pub fn capture_trials(
     preset: &str,
     trials: usize,
     seed: u64,
     size: Option<(u32, u32)>,
+    quality: DetectionQuality,
 ) -> Result<Vec<CaptureTrial>, String> {
     let nuisance = Nuisance::default();
     let mut out = Vec::new();
@@ -63,9 +65,13 @@ pub fn capture_trials(
         let text = serde_json::to_string(&capture.manifest).map_err(|e| e.to_string())?;
         let session = parse_session(text.as_bytes()).map_err(|e| e.to_string())?;
         let t0 = Instant::now();
-        let (detected, report) = detect_session(&session, &MemorySource(files), &Silent)
+        let (detected, report) = detect_session(&session, &MemorySource(files), quality, &Silent)
             .map_err(|e| format!("detection: {e:?}"))?;
-        let doc = calibrate_detected(&detected, report, &CalibOptions::default(), &Silent)
+        let opts = CalibOptions {
+            detection: quality,
+            ..CalibOptions::default()
+        };
+        let doc = calibrate_detected(&detected, report, &opts, &Silent)
             .map_err(|c| format!("cancelled at {}", c.0))?;
         let total_s = t0.elapsed().as_secs_f64();
         // Detection against the truth: every legible tag's four corners reported, and
@@ -132,6 +138,12 @@ pub fn capture_trials(
             detection_s: doc.detection.as_ref().map_or(0.0, |d| d.seconds),
             total_s,
         });
+        // A trial takes minutes (most of it rendering): say where the run is.
+        eprintln!(
+            "trial {}/{trials} (seed {s}): {}, worst {worst_t:.3} mm, {worst_r:.5}°",
+            k + 1,
+            doc.status.as_str()
+        );
     }
     Ok(out)
 }

@@ -77,7 +77,7 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
     let mut quad_times = Vec::new();
     let (mut esq, mut en, mut edge_times) = (0.0, 0usize, Vec::new());
     let edge_only = DetectOptions {
-        whole_tag_fit: false,
+        whole_fit_below: 0.0,
         ..DetectOptions::default()
     };
     for i in 0..cell.n {

@@ -373,6 +373,45 @@ pub struct RigPose {
     pub quaternion_wxyz: [f64; 4],
 }
 
+/// How much work detection spends on an image (`--detect-quality`, job option
+/// `detection.quality`). `accurate`, the default, finds every tag a human could read at
+/// ~0.01 px. `fast` searches the decimated image only and fits whole only the tags under
+/// 30 px: about a third of the work on dense scenes, at the price of some small oblique
+/// single tags and a corner error ~4× larger (docs/performance.md, "Detection quality").
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DetectionQuality {
+    Fast,
+    #[default]
+    Accurate,
+}
+
+impl DetectionQuality {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DetectionQuality::Fast => "fast",
+            DetectionQuality::Accurate => "accurate",
+        }
+    }
+}
+
+impl std::str::FromStr for DetectionQuality {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        match s {
+            "fast" => Ok(DetectionQuality::Fast),
+            "accurate" => Ok(DetectionQuality::Accurate),
+            other => Err(format!("one of fast, accurate, got {other:?}")),
+        }
+    }
+}
+
+impl std::fmt::Display for DetectionQuality {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
 /// The detection stage's account of one image.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct ImageReport {
@@ -399,6 +438,10 @@ pub struct ImageReport {
 
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct DetectionReport {
+    /// The quality the images were detected at (images reused from their upload were
+    /// detected at `accurate`, the upload's quality).
+    #[serde(default)]
+    pub quality: DetectionQuality,
     pub images_total: usize,
     pub images_skipped: usize,
     pub points_total: usize,
@@ -414,6 +457,7 @@ impl DetectionReport {
     /// The report of these images' outcomes (no time measured, none reused).
     pub fn of(images: Vec<ImageReport>) -> DetectionReport {
         DetectionReport {
+            quality: DetectionQuality::default(),
             images_total: images.len(),
             images_skipped: images.iter().filter(|r| r.error.is_some()).count(),
             points_total: images.iter().map(|r| r.points).sum(),

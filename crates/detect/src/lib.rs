@@ -32,13 +32,23 @@ use std::collections::BTreeMap;
 /// quads often take in the crossing squares and sit 2-4 px out.
 const QUAD_REACH: f64 = 4.0;
 
+/// [`Quality::Fast`] fits whole only the tags under this many pixels, where the edge
+/// measurement's error grows fastest.
+pub const FAST_WHOLE_FIT_BELOW_PX: f64 = 30.0;
+
+pub use rigcal_core::result::DetectionQuality as Quality;
+
 #[derive(Clone, Debug)]
 pub struct DetectOptions {
     pub quads: quads::QuadOptions,
-    /// Fit tags too small for the edge measurement whole ([`tagfit`]): corners ~5× more
-    /// accurate on them, at ~1-3 ms per such tag. Off, their corners are the edge
-    /// measurement's (0.05-0.1 px RMS under ~40 px).
-    pub whole_tag_fit: bool,
+    /// Search the full-resolution image as well as the decimated one: for single tags the
+    /// decimated search loses (small oblique ones), and, bright-grown, for boards with no
+    /// seed. Off, the bright-grown search runs on the decimated image.
+    pub full_resolution: bool,
+    /// Tags whose shallowest extent is under this many pixels are fitted whole
+    /// ([`tagfit`]): their corners come out ~5× more accurate than the edge
+    /// measurement's (0.05-0.1 px RMS under ~40 px), at ~1-3 ms per tag. 0: no fits.
+    pub whole_fit_below: f64,
     /// Threads for the per-tag work of one image (edge refinement, whole-tag fits). 1
     /// where images are detected in parallel already (a job, `rigcal calibrate`); the
     /// cores for one image on its own (`rigcal detect`).
@@ -47,9 +57,22 @@ pub struct DetectOptions {
 
 impl Default for DetectOptions {
     fn default() -> Self {
+        Self::of_quality(Quality::Accurate)
+    }
+}
+
+impl DetectOptions {
+    /// The options of a [`Quality`], on one thread.
+    pub fn of_quality(quality: Quality) -> Self {
+        let accurate = quality == Quality::Accurate;
         Self {
             quads: quads::QuadOptions::default(),
-            whole_tag_fit: true,
+            full_resolution: accurate,
+            whole_fit_below: if accurate {
+                tagfit::WHOLE_FIT_BELOW_PX
+            } else {
+                FAST_WHOLE_FIT_BELOW_PX
+            },
             threads: 1,
         }
     }
@@ -172,7 +195,10 @@ pub fn detect_tags(
     // small oblique ones (9 in 10 of those missed among 120 views of 24-40 px tags at up
     // to 60° were found at full resolution): a full-resolution pass adds the ids the first
     // one did not find (~10 ms on 1600×1200 with the noise-adaptive contrast floor).
-    if base.decimate > 1.0 && wanted.iter().any(|w| matches!(w, Wanted::Tags(..))) {
+    if opts.full_resolution
+        && base.decimate > 1.0
+        && wanted.iter().any(|w| matches!(w, Wanted::Tags(..)))
+    {
         let full = quads::QuadOptions {
             decimate: 1.0,
             ..base.clone()
@@ -210,7 +236,11 @@ pub fn detect_tags(
         .collect();
     if !seedless.is_empty() {
         let grown = quads::QuadOptions {
-            decimate: 1.0,
+            decimate: if opts.full_resolution {
+                1.0
+            } else {
+                base.decimate
+            },
             grow_bright: true,
             ..base.clone()
         };
@@ -250,8 +280,15 @@ pub fn detect_tags(
     let mut points = Vec::new();
     let mut border = Vec::new();
     let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
-        if opts.whole_tag_fit {
-            whole_tag_corners(img, &f.refined.corners, lens, id, layout)
+        if opts.whole_fit_below > 0.0 {
+            whole_tag_corners(
+                img,
+                &f.refined.corners,
+                lens,
+                id,
+                layout,
+                opts.whole_fit_below,
+            )
         } else {
             f.refined.corners
         }
@@ -390,8 +427,9 @@ fn whole_tag_corners(
     lens: Lens,
     id: u32,
     layout: Option<&GridLayout>,
+    below: f64,
 ) -> [Vec2; 4] {
-    if tagfit::shallowest_extent(corners) >= tagfit::WHOLE_FIT_BELOW_PX {
+    if tagfit::shallowest_extent(corners) >= below {
         return *corners;
     }
     let surround = match layout {

@@ -5,7 +5,7 @@
 //! session still calibrates — and the report lists what each image gave.
 
 use super::{enter, Cancelled, Progress};
-use rigcal_core::result::{DetectionReport, ImageReport};
+use rigcal_core::result::{DetectionQuality, DetectionReport, ImageReport};
 use rigcal_core::session::{
     from_manifest, image_slots, ImageSlot, LineSpec, Method, ObservationSpec, Session, TargetSpec,
 };
@@ -25,6 +25,24 @@ use std::time::Instant;
 /// never reused, since its corners may differ.
 pub const DETECTOR_VERSION: &str = concat!("rigcal-detect-", env!("CARGO_PKG_VERSION"));
 
+/// The detector name an outcome detected at `quality` is kept under:
+/// [`DETECTOR_VERSION`] for `accurate` (the name every outcome had before there was a
+/// choice), `+fast` after it for `fast`.
+pub fn detector_name(quality: DetectionQuality) -> String {
+    match quality {
+        DetectionQuality::Accurate => DETECTOR_VERSION.to_string(),
+        DetectionQuality::Fast => format!("{DETECTOR_VERSION}+fast"),
+    }
+}
+
+/// Whether an outcome kept under `detector` may stand in for detecting at `quality`: it
+/// is this build's, at that quality or a better one (an `accurate` outcome serves a
+/// `fast` job, never the other way round).
+pub fn reusable_for(detector: &str, quality: DetectionQuality) -> bool {
+    detector == detector_name(DetectionQuality::Accurate)
+        || (quality == DetectionQuality::Fast && detector == detector_name(DetectionQuality::Fast))
+}
+
 /// Default pixel budget of one image (the service's `--max-image-pixels`).
 pub const DEFAULT_MAX_IMAGE_PIXELS: u64 = 50_000_000;
 
@@ -39,8 +57,8 @@ pub trait ImageSource: Sync {
     /// What [`detect_image`] already gave for this slot's bytes, when the source kept it
     /// (the service detects images as they are uploaded). The stage then uses it instead
     /// of decoding the image again. A source must only offer an outcome of these exact
-    /// bytes and of this build's detector ([`DETECTOR_VERSION`]); anything else is
-    /// detected afresh.
+    /// bytes, of this build's detector ([`DETECTOR_VERSION`]) and of a quality that
+    /// serves the job's ([`reusable_for`]); anything else is detected afresh.
     fn detected(&self, _slot: &ImageSlot) -> Option<ImageDetection> {
         None
     }
@@ -150,6 +168,7 @@ pub fn awaiting_detection(session: &Session) -> Vec<ImageSlot> {
 pub fn detect_session(
     session: &Session,
     source: &dyn ImageSource,
+    quality: DetectionQuality,
     progress: &dyn Progress,
 ) -> Result<(Session, Option<DetectionReport>), DetectionFailure> {
     let pending = awaiting_detection(session);
@@ -186,7 +205,7 @@ pub fn detect_session(
                         reused.fetch_add(1, Ordering::SeqCst);
                         kept
                     }
-                    None => detect_image(session, slot, source),
+                    None => detect_image(session, slot, source, quality),
                 };
                 if let Ok(mut r) = results.lock() {
                     r[i] = Some(out);
@@ -220,6 +239,7 @@ pub fn detect_session(
     let (detected, mut report) = merge_detections(session, outcomes)?;
     report.seconds = start.elapsed().as_secs_f64();
     report.images_reused = reused.into_inner();
+    report.quality = quality;
     Ok((detected, Some(report)))
 }
 
@@ -369,6 +389,7 @@ pub fn detect_image(
     session: &Session,
     slot: &ImageSlot,
     source: &dyn ImageSource,
+    quality: DetectionQuality,
 ) -> ImageDetection {
     let camera = session
         .camera_index(&slot.camera)
@@ -405,7 +426,7 @@ pub fn detect_image(
             &gray,
             &session.manifest.targets,
             camera,
-            &DetectOptions::default(),
+            &DetectOptions::of_quality(quality),
         )
     });
     match outcome {

@@ -33,6 +33,8 @@ pub struct CalibOptions {
     /// Least corner noise (px) the reported uncertainty assumes, whatever the residuals
     /// say; [`DETECTED_CORNER_SIGMA_FLOOR_PX`] for corners detected from images.
     pub corner_sigma_floor_px: f64,
+    /// The detection stage's quality (sessions of images).
+    pub detection: DetectionQuality,
 }
 
 /// Corner noise (px) the uncertainty of a session detected from images assumes at least.
@@ -200,7 +202,12 @@ pub fn run(
     opts: &CalibOptions,
     progress: &dyn Progress,
 ) -> Result<ResultDocument, Cancelled> {
-    let (detected, report) = match detection::detect_session(session, images, progress) {
+    let (detected, report) = match detection::detect_session(
+        session,
+        images,
+        opts.detection,
+        progress,
+    ) {
         Ok(d) => d,
         Err(detection::DetectionFailure::Cancelled(c)) => return Err(c),
         Err(detection::DetectionFailure::Inconsistent {

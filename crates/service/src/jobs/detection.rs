@@ -4,15 +4,17 @@
 //! the check is complete moments after the last image of a capture instead of after a
 //! whole solve.
 
+use super::worker::WorkerConfig;
 use crate::store::blob::BlobStore;
 use crate::store::detections::{DetectionTask, StoredDetection};
 use crate::store::Store;
 use futures::stream::{FuturesUnordered, StreamExt};
 use rigcal_calib::check::{capture_check, CaptureCheck};
+use rigcal_core::result::DetectionQuality;
 use rigcal_core::session::{parse_session, ImageSlot, Session};
 use rigcal_engine::pipeline::detection::{
-    awaiting_detection, detect_image, merge_detections, DetectionFailure, ImageDetection,
-    DETECTOR_VERSION,
+    awaiting_detection, detect_image, detector_name, merge_detections, reusable_for,
+    DetectionFailure, ImageDetection,
 };
 use rigcal_engine::pipeline::ImageSource;
 use serde_json::json;
@@ -33,7 +35,13 @@ impl BlobSource {
     /// The source of `session_id`'s images, with its reusable detections: those of an
     /// image whose bytes are still stored (a lost image fails the job `input_missing`
     /// as it would without a kept detection: the job's bundle must be able to replay it).
-    pub async fn of(store: &Store, session_id: &str, max_pixels: u64) -> Result<Self, String> {
+    /// Only outcomes that serve a job of `quality` are offered.
+    pub async fn of(
+        store: &Store,
+        session_id: &str,
+        max_pixels: u64,
+        quality: DetectionQuality,
+    ) -> Result<Self, String> {
         let by_slot: HashMap<(String, i64), String> = store
             .images(session_id)
             .await
@@ -51,7 +59,7 @@ impl BlobSource {
             let Some(sha) = by_slot.get(&key) else {
                 continue;
             };
-            let Some(outcome) = reusable(&d, sha) else {
+            let Some(outcome) = reusable(&d, sha, quality) else {
                 continue;
             };
             if store.blobs.contains(sha).await.map_err(|e| e.to_string())? {
@@ -67,11 +75,15 @@ impl BlobSource {
     }
 }
 
-/// A stored outcome a job may use in place of detecting: of these bytes, of this
-/// build's detector, and one that parses (one that does not is detected again, and the
+/// A stored outcome a job of `quality` may use in place of detecting: of these bytes,
+/// of this build's detector at a quality that serves the job's, and one that parses (one that does not is detected again, and the
 /// disagreement logged: it is ours, not the client's).
-fn reusable(d: &StoredDetection, sha256: &str) -> Option<ImageDetection> {
-    if d.sha256 != sha256 || d.detector != DETECTOR_VERSION {
+fn reusable(
+    d: &StoredDetection,
+    sha256: &str,
+    quality: DetectionQuality,
+) -> Option<ImageDetection> {
+    if d.sha256 != sha256 || !reusable_for(&d.detector, quality) {
         return None;
     }
     let doc = d.outcome.as_ref().ok()?;
@@ -165,7 +177,8 @@ impl Refreshes {
 /// detection reuses what was detected already, so the images left wait little longer.
 pub const IMAGES_PER_TURN: usize = 16;
 
-/// Detect pending uploaded images, up to `limit` at once on blocking threads, claiming
+/// Detect pending uploaded images (with `cfg`'s lease, image budget, quality and
+/// backoff), up to `limit` at once on blocking threads, claiming
 /// the next as soon as one ends (so no core waits for the slowest image of a batch),
 /// until none is pending or [`IMAGES_PER_TURN`] were claimed; record each outcome and
 /// recompute the capture checks that are due (see [`Refreshes`]). Returns how many were
@@ -173,12 +186,13 @@ pub const IMAGES_PER_TURN: usize = 16;
 pub async fn run_batch(
     name: &str,
     store: &Store,
-    lease_ms: i64,
+    cfg: &WorkerConfig,
     limit: usize,
-    max_pixels: u64,
-    backoff_ms: i64,
     refreshes: &mut Refreshes,
 ) -> sqlx::Result<usize> {
+    let lease_ms = cfg.lease.as_millis() as i64;
+    let backoff_ms = cfg.backoff.as_millis() as i64;
+    let (max_pixels, quality) = (cfg.max_image_pixels, cfg.upload_detect_quality);
     // Each session parsed once while its images are being detected.
     let mut sessions: HashMap<String, Result<Arc<Session>, String>> = HashMap::new();
     let mut running = FuturesUnordered::new();
@@ -201,7 +215,7 @@ pub async fn run_batch(
             running.push(async move {
                 let t = task.clone();
                 let outcome = tokio::task::spawn_blocking(move || {
-                    detect_one(&t, session, &blobs, max_pixels)
+                    detect_one(&t, session, &blobs, max_pixels, quality)
                 })
                 .await
                 .unwrap_or_else(|e| Err(format!("internal error: the detection task failed: {e}")));
@@ -228,7 +242,14 @@ pub async fn run_batch(
         }
         let doc = doc.as_deref().map_err(String::as_str);
         if store
-            .finish_detection(&task, name, DETECTOR_VERSION, doc, &event, backoff_ms)
+            .finish_detection(
+                &task,
+                name,
+                &detector_name(quality),
+                doc,
+                &event,
+                backoff_ms,
+            )
             .await?
             && sessions[&task.session_id].is_ok()
         {
@@ -265,6 +286,7 @@ fn detect_one(
     session: Result<Arc<Session>, String>,
     blobs: &BlobStore,
     max_pixels: u64,
+    quality: DetectionQuality,
 ) -> Result<ImageDetection, String> {
     let session = session?;
     let slot = awaiting_detection(&session)
@@ -283,7 +305,7 @@ fn detect_one(
         detected: HashMap::new(),
     };
     let out = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
-        detect_image(&session, &slot, &source)
+        detect_image(&session, &slot, &source, quality)
     }))
     .map_err(|_| "internal error: the detector panicked on this image".to_string())?;
     if out.unreadable() {
@@ -337,7 +359,8 @@ pub async fn refresh_check(store: &Store, session_id: &str, session: Session) ->
                 let key = (slot.camera.clone(), slot.frame);
                 let d = stored.iter().find(|d| (d.camera.clone(), d.frame) == key)?;
                 let o = match &d.outcome {
-                    Ok(_) => reusable(d, images.get(&key)?)?,
+                    // The check takes an outcome of either quality (`Fast` accepts both).
+                    Ok(_) => reusable(d, images.get(&key)?, DetectionQuality::Fast)?,
                     Err(why) => ImageDetection::skipped(
                         &session,
                         &slot,

@@ -7,6 +7,7 @@ pub mod detection;
 pub mod queue;
 pub mod worker;
 
+use rigcal_core::result::DetectionQuality;
 use rigcal_core::session::InputError;
 use rigcal_engine::pipeline::{CalibOptions, LossKind};
 use serde::{Deserialize, Serialize};
@@ -21,6 +22,18 @@ pub struct JobOptions {
     /// Scale of the robust loss, pixels.
     #[serde(default = "default_loss_scale")]
     pub loss_scale: f64,
+    /// How the images of a session are detected.
+    #[serde(default)]
+    pub detection: DetectionOptions,
+}
+
+/// The `detection` options of a job.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DetectionOptions {
+    /// accurate | fast.
+    #[serde(default)]
+    pub quality: DetectionQuality,
 }
 
 fn default_loss_scale() -> f64 {
@@ -32,6 +45,7 @@ impl Default for JobOptions {
         Self {
             loss: LossKind::default(),
             loss_scale: default_loss_scale(),
+            detection: DetectionOptions::default(),
         }
     }
 }
@@ -39,7 +53,11 @@ impl Default for JobOptions {
 impl JobOptions {
     /// The engine's options; errors name the field under `options.`.
     pub fn calib(&self) -> Result<CalibOptions, InputError> {
-        CalibOptions::from_loss(self.loss, self.loss_scale)
-            .map_err(|e| InputError::new(format!("options.{}", e.field), e.expected))
+        let opts = CalibOptions::from_loss(self.loss, self.loss_scale)
+            .map_err(|e| InputError::new(format!("options.{}", e.field), e.expected))?;
+        Ok(CalibOptions {
+            detection: self.detection.quality,
+            ..opts
+        })
     }
 }

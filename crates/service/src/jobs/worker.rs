@@ -13,6 +13,7 @@ use super::JobOptions;
 use crate::store::db::Db;
 use crate::store::{Location, Store};
 use crate::telemetry::Metrics;
+use rigcal_core::result::DetectionQuality;
 use rigcal_core::session::parse_session;
 use rigcal_core::verdict::ReasonCode;
 use rigcal_engine::pipeline::{run, Cancelled, Progress};
@@ -34,6 +35,10 @@ pub struct WorkerConfig {
     /// Largest image decoded at detection: the same budget the upload was checked
     /// against (`--max-image-pixels`), so an image the API accepted is never skipped.
     pub max_image_pixels: u64,
+    /// The quality uploaded images are detected at (`--upload-detect-quality`). An
+    /// `accurate` outcome serves jobs of either quality; a `fast` one only `fast` jobs
+    /// (an `accurate` job detects those images again).
+    pub upload_detect_quality: DetectionQuality,
     /// The webhook dispatcher every process with workers (or an API) runs beside them.
     pub webhooks: crate::webhooks::WebhookConfig,
 }
@@ -46,6 +51,7 @@ impl Default for WorkerConfig {
             poll: Duration::from_millis(200),
             backoff: Duration::from_secs(2),
             max_image_pixels: rigcal_engine::pipeline::detection::DEFAULT_MAX_IMAGE_PIXELS,
+            upload_detect_quality: DetectionQuality::Accurate,
             webhooks: crate::webhooks::WebhookConfig::default(),
         }
     }
@@ -166,7 +172,6 @@ async fn worker_loop(
 ) {
     let queue = Queue::new(store.db.clone());
     let lease_ms = cfg.lease.as_millis() as i64;
-    let backoff = cfg.backoff.as_millis() as i64;
     // Uploaded images first: each is short, and together they make the operator's
     // capture check; but a turn of them at a time, so that jobs are not starved by a
     // stream of uploads. The workers of a process share the cores between them.
@@ -174,17 +179,7 @@ async fn worker_loop(
     let batch = cores.div_ceil(cfg.workers.max(1));
     let mut refreshes = detection::Refreshes::default();
     while !*stop.borrow() {
-        let max_px = cfg.max_image_pixels;
-        let detected = match detection::run_batch(
-            &name,
-            &store,
-            lease_ms,
-            batch,
-            max_px,
-            backoff,
-            &mut refreshes,
-        )
-        .await
+        let detected = match detection::run_batch(&name, &store, &cfg, batch, &mut refreshes).await
         {
             Ok(n) => n,
             Err(e) => {
@@ -292,14 +287,15 @@ async fn run_job(
         }
     };
 
-    let images = match BlobSource::of(store, &job.session_id, cfg.max_image_pixels).await {
-        Ok(source) => source,
-        Err(e) => {
-            let p = problem("storage_error", e.to_string(), None);
-            let _ = queue.fail(&job.id, name, &p, true, backoff).await;
-            return;
-        }
-    };
+    let images =
+        match BlobSource::of(store, &job.session_id, cfg.max_image_pixels, opts.detection).await {
+            Ok(source) => source,
+            Err(e) => {
+                let p = problem("storage_error", e.to_string(), None);
+                let _ = queue.fail(&job.id, name, &p, true, backoff).await;
+                return;
+            }
+        };
     let stop = Arc::new(AtomicBool::new(false));
     let lost = Arc::new(AtomicBool::new(false));
     let (tx, mut rx) = mpsc::unbounded_channel::<(String, f64)>();
