@@ -20,6 +20,7 @@ fn cell(grid: bool, lens: Lens, n: usize) -> Cell {
         height: 600,
         noise: 2.0,
         blur: 0.8,
+        quality: Quality::Accurate,
     }
 }
 

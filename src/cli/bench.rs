@@ -106,6 +106,9 @@ pub enum Command {
         /// Only the single-tag cells (`tags`) or only the AprilGrid cells (`grids`).
         #[arg(long)]
         only: Option<String>,
+        /// accurate | fast
+        #[arg(long, default_value = "accurate")]
+        detect_quality: rigcal_core::result::DetectionQuality,
     },
     /// Claim latency of the job queue with many jobs waiting, on the store given (run it
     /// against PostgreSQL with --database-url as well as on the SQLite default).
@@ -264,8 +267,12 @@ pub fn run(c: Command) -> Result<i32> {
             out,
             tag_sizes,
             only,
+            detect_quality,
         } => {
             let mut cells = rigcal_bench::detect::study(views, width, height);
+            for c in cells.iter_mut() {
+                c.quality = detect_quality;
+            }
             if let Some(sizes) = tag_sizes {
                 let [lo, hi] = sizes[..] else {
                     return Err(anyhow!("--tag-sizes: MIN,MAX in pixels, got {sizes:?}"));

@@ -3,7 +3,7 @@
 //! refinement's gain is visible), and time per image.
 
 use rigcal_detect as detect;
-use rigcal_detect::{corner, gray::Gray, quads, DetectOptions};
+use rigcal_detect::{corner, gray::Gray, quads, DetectOptions, Quality};
 use rigcal_synth::render::RenderOptions;
 use rigcal_synth::tagscene::{scene, Lens, SceneParams};
 use std::time::Instant;
@@ -57,6 +57,8 @@ pub struct Cell {
     pub height: u32,
     pub noise: f64,
     pub blur: f64,
+    /// The detection quality the cell is detected at.
+    pub quality: Quality,
 }
 
 pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
@@ -76,9 +78,10 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
     let mut times = Vec::new();
     let mut quad_times = Vec::new();
     let (mut esq, mut en, mut edge_times) = (0.0, 0usize, Vec::new());
+    let opts = DetectOptions::of_quality(cell.quality);
     let edge_only = DetectOptions {
         whole_fit_below: 0.0,
-        ..DetectOptions::default()
+        ..opts.clone()
     };
     for i in 0..cell.n {
         let params = cell_params(cell, i, seed);
@@ -86,12 +89,7 @@ pub fn run_cell(cell: &Cell, seed: u64) -> DetectRow {
         let s = scene(&params);
         let gray = Gray::from_luma8(&s.image);
         let start = Instant::now();
-        let out = detect::detect_tags(
-            &gray,
-            &s.targets,
-            Some(&s.camera),
-            &DetectOptions::default(),
-        );
+        let out = detect::detect_tags(&gray, &s.targets, Some(&s.camera), &opts);
         times.push(start.elapsed().as_secs_f64() * 1e3);
         row.images += 1;
         row.visible += s.truth.len();
@@ -198,6 +196,7 @@ pub fn study(n: usize, width: u32, height: u32) -> Vec<Cell> {
                 height,
                 noise: 2.0,
                 blur: 0.8,
+                quality: Quality::Accurate,
             });
         }
     }
