@@ -69,6 +69,10 @@ pub enum Command {
         /// (a "#" of 3 × 3 thin lines, 12 mm strokes, found as ridges).
         #[arg(long, default_value = "l")]
         target: String,
+        /// With --images: render as a real capture shows it (a textured tile floor,
+        /// blur, 25 % vignetting, gain and offset, JPEG q 92); --noise is the sensor's.
+        #[arg(long, requires = "images")]
+        real: bool,
         /// Placement study (sampled points only): ground distance camera → target (m).
         #[arg(long)]
         target_distance: Option<f64>,
@@ -203,6 +207,7 @@ pub fn run(c: Command) -> Result<i32> {
             aux_views,
             noise_on,
             target,
+            real,
         } => {
             use rigcal_bench::ring::NoiseOn;
             let print = match target.as_str() {
@@ -245,8 +250,9 @@ pub fn run(c: Command) -> Result<i32> {
                         "--images renders the default placement; the placement flags are for sampled points"
                     ));
                 }
-                println!("From rendered images through the line-target detector; σ is image noise in grey levels (of 255).");
-                rigcal_bench::ring::ring_accuracy_images(&noise, trials, seed, print)
+                println!("From rendered images{} through the line-target detector; σ is image noise in grey levels (of 255).", if real { " as a real capture shows them" } else { "" });
+                let nuisance = real.then(rigcal_synth::hall::Nuisance::default);
+                rigcal_bench::ring::ring_accuracy_images(&noise, trials, seed, print, nuisance)
             } else {
                 if study {
                     println!(

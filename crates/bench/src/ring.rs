@@ -72,17 +72,16 @@ pub fn ring_accuracy_layout(
 
 /// The same from rendered images through the line-target detector: the noise is
 /// grey-level noise of the 8-bit images (σ in grey levels), every trial 16 new renders
-/// of `print` on the targets.
+/// of `print` on the targets; clean PNGs, or with `nuisance` as a real capture shows
+/// them (textured floor, blur, vignetting, gain and offset, JPEG).
 pub fn ring_accuracy_images(
     noise_grey: &[f64],
     trials: usize,
     seed: u64,
     print: rigcal_synth::ring::RingPrint,
+    nuisance: Option<rigcal_synth::hall::Nuisance>,
 ) -> Vec<RingRow> {
-    let look = rigcal_synth::ring::RingImages {
-        print,
-        nuisance: None,
-    };
+    let look = rigcal_synth::ring::RingImages { print, nuisance };
     let (rig, aux, scene) = (
         rigcal_synth::ring::rig_camera(),
         rigcal_synth::ring::aux_camera(),

@@ -11,6 +11,7 @@
 use super::{camera_spec, Truth};
 use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
+use rigcal_core::geometry::line2::{bisector, distance, through};
 use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
 use rigcal_core::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
 use rigcal_core::target::line_layout::{Axis, LineLayout, Print};
@@ -243,7 +244,7 @@ pub fn sample_lines(
                 .filter_map(|i| {
                     let s = (i as f64 + 0.5) / n as f64;
                     // A stroke is seen as the band between its edges' images: its centre
-                    // (what a ridge detector measures, and the bundle models).
+                    // line (what a ridge detector measures, and the bundle models).
                     let x = a + (b - a) * s;
                     let p = match (target.print, target.segments[m].axis) {
                         (Print::Outline, _) => proj(x)?,
@@ -252,7 +253,18 @@ pub fn sample_lines(
                                 Axis::X => Vec3::z(),
                                 Axis::Z => Vec3::x(),
                             } * (width / 2.0);
-                            (proj(x + n)? + proj(x - n)?) / 2.0
+                            // In the ideal image the band is a wedge: its centre is the
+                            // bisector of the edges' images, here at the foot of the
+                            // midpoint across the stroke.
+                            let ideal = |x: Vec3| {
+                                let q = cam_from_target.apply(&x);
+                                (q.z > 0.0).then(|| Vec2::new(q.x / q.z, q.y / q.z))
+                            };
+                            let edge = |o: Vec3| through(&ideal(a + o)?, &ideal(b + o)?);
+                            let centre = bisector(&edge(n)?, &edge(-n)?)?;
+                            let m = (ideal(x + n)? + ideal(x - n)?) / 2.0;
+                            let foot = m - centre.xy() * distance(&centre, &m);
+                            camera.project(&Vec3::new(foot.x, foot.y, 1.0))?
                         }
                     };
                     let p = if noise_px > 0.0 {

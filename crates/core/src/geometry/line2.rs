@@ -36,6 +36,26 @@ pub fn distance(line: &Vec3, p: &Vec2) -> f64 {
     line.x * p.x + line.y * p.y + line.z
 }
 
+/// The normalised line through `p` and `q`, oriented from `p` to `q` (the left side,
+/// image `y` down, is positive); `None` if they coincide.
+pub fn through(p: &Vec2, q: &Vec2) -> Option<Vec3> {
+    let d = q - p;
+    let len = d.norm();
+    (len > 1e-12).then(|| {
+        let n = Vec2::new(d.y, -d.x) / len;
+        Vec3::new(n.x, n.y, -n.dot(p))
+    })
+}
+
+/// The bisector of two lines oriented the same way: the points at equal distance from
+/// both on opposite sides, i.e. the centre line of the band (or wedge) between them.
+/// `None` if they are antiparallel.
+pub fn bisector(a: &Vec3, b: &Vec3) -> Option<Vec3> {
+    let s = a + b;
+    let n = s.xy().norm();
+    (n > 1e-12).then(|| s / n)
+}
+
 /// Intersection of two lines as a pixel; `None` if they are (nearly) parallel.
 pub fn intersect(a: &Vec3, b: &Vec3) -> Option<Vec2> {
     let x = a.cross(b);
@@ -71,6 +91,23 @@ pub fn vanishing_direction(lines: &[Vec3], k: &Mat3) -> Option<Vec3> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_bisector_of_a_wedge_is_equidistant_from_its_edges() {
+        // Edges from (0, 0)/(0, 10) converging to (100, 4)/(100, 6): a band 10 px wide
+        // narrowing to 2 px. Its bisector is the line y = 5.
+        let a = through(&Vec2::new(0.0, 0.0), &Vec2::new(100.0, 4.0)).unwrap();
+        let b = through(&Vec2::new(0.0, 10.0), &Vec2::new(100.0, 6.0)).unwrap();
+        let m = bisector(&a, &b).unwrap();
+        for x in [-50.0, 0.0, 37.0, 100.0, 400.0] {
+            let p = Vec2::new(x, 5.0);
+            assert!(distance(&m, &p).abs() < 1e-12);
+            assert!((distance(&a, &p) + distance(&b, &p)).abs() < 1e-12);
+        }
+        // `through` is oriented: the left of p→q (image y down) is positive.
+        assert!(distance(&a, &Vec2::new(50.0, -1.0)) > 0.0);
+        assert!(bisector(&a, &(-a)).is_none());
+    }
 
     #[test]
     fn fits_any_orientation_exactly_including_vertical() {
