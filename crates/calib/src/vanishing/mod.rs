@@ -330,11 +330,12 @@ pub fn solve(session: &Session, opts: &VanishingOptions) -> (Option<Solution>, V
                     target: o.target,
                     line: o.line,
                     points: undistort(&input.auxiliary.camera, &o.points),
+                    weight: 1.0,
                 })
             })
             .collect(),
     };
-    let summary = problem.solve(&opts.loss, opts.max_iterations);
+    let summary = problem.solve_weighing_lines(&opts.loss, opts.max_iterations);
     let Some((cov, sigma_px)) = problem.covariance(&opts.loss) else {
         findings.push(finding(
             ReasonCode::NoConvergence,

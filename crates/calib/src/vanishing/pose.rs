@@ -238,10 +238,11 @@ pub fn estimate_view_pose(
                 target: 0,
                 line: m,
                 points: p.clone(),
+                weight: 1.0,
             })
             .collect(),
     };
-    let summary = problem.solve(loss, max_iterations);
+    let summary = problem.solve_weighing_lines(loss, max_iterations);
     if !summary.converged && summary.final_cost >= summary.initial_cost {
         return Err(format!(
             "the point-to-line refinement failed: {}",
