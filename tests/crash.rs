@@ -59,14 +59,7 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
     let t = Instant::now();
     let killed = 'wait: loop {
         for id in &jobs {
-            let j: Value = c
-                .get(s.url(&format!("/v1/jobs/{id}")))
-                .send()
-                .await
-                .unwrap()
-                .json()
-                .await
-                .unwrap();
+            let j = get_job(&c, &s, id).await;
             if j["status"] == "running" && j["stage"] != "detection" && !j["stage"].is_null() {
                 break 'wait id.clone();
             }
@@ -85,14 +78,7 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
         let j = wait_job(&c, &s, id, Duration::from_secs(240)).await;
         assert_eq!(j["status"], "succeeded", "{j}");
     }
-    let killed_job: Value = c
-        .get(s.url(&format!("/v1/jobs/{killed}")))
-        .send()
-        .await
-        .unwrap()
-        .json()
-        .await
-        .unwrap();
+    let killed_job = get_job(&c, &s, &killed).await;
     assert_eq!(
         killed_job["attempts"], 2,
         "re-claimed after the lease expired: {killed_job}"

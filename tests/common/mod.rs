@@ -279,18 +279,22 @@ pub async fn submit(c: &reqwest::Client, s: &Server, session_id: &str) -> Value 
     r.json().await.unwrap()
 }
 
+/// `GET /v1/jobs/{id}` as JSON.
+pub async fn get_job(c: &reqwest::Client, s: &Server, id: &str) -> Value {
+    c.get(s.url(&format!("/v1/jobs/{id}")))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap()
+}
+
 /// Poll a job until it ends (or `timeout`).
 pub async fn wait_job(c: &reqwest::Client, s: &Server, id: &str, timeout: Duration) -> Value {
     let t = Instant::now();
     loop {
-        let j: Value = c
-            .get(s.url(&format!("/v1/jobs/{id}")))
-            .send()
-            .await
-            .unwrap()
-            .json()
-            .await
-            .unwrap();
+        let j = get_job(c, s, id).await;
         let st = j["status"].as_str().unwrap_or("");
         if ["succeeded", "degraded", "failed", "cancelled"].contains(&st) {
             return j;
