@@ -56,20 +56,7 @@ async fn kill_9_mid_job_loses_nothing_and_finishes_every_job_once() {
     // Wait until a job is past its first stage, then kill -9. Any of the three will do
     // (one worker runs them in turn): on a loaded machine a poll can take longer than a
     // whole job, and the first may finish between two polls.
-    let t = Instant::now();
-    let killed = 'wait: loop {
-        for id in &jobs {
-            let j = get_job(&c, &s, id).await;
-            if j["status"] == "running" && j["stage"] != "detection" && !j["stage"].is_null() {
-                break 'wait id.clone();
-            }
-        }
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "no job seen running within 120 s"
-        );
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    };
+    let killed = wait_any_running_past_detection(&c, &s, &jobs).await;
     s.kill9();
 
     let s = Server::start(dir.path(), &args);

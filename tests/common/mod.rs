@@ -290,6 +290,30 @@ pub async fn get_job(c: &reqwest::Client, s: &Server, id: &str) -> Value {
         .unwrap()
 }
 
+/// Poll `ids` until one of them is running a stage after detection, and return it: the
+/// moment a test kills a worker mid-solve. Any of several jobs will do because on a
+/// loaded machine one poll can take longer than a whole job.
+pub async fn wait_any_running_past_detection(
+    c: &reqwest::Client,
+    s: &Server,
+    ids: &[String],
+) -> String {
+    let t = Instant::now();
+    loop {
+        for id in ids {
+            let j = get_job(c, s, id).await;
+            if j["status"] == "running" && !j["stage"].is_null() && j["stage"] != "detection" {
+                return id.clone();
+            }
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "none of {ids:?} seen running past detection within 120 s"
+        );
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+}
+
 /// Poll a job until it ends (or `timeout`).
 pub async fn wait_job(c: &reqwest::Client, s: &Server, id: &str, timeout: Duration) -> Value {
     let t = Instant::now();
