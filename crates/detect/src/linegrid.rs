@@ -25,7 +25,7 @@
 use super::gray::Gray;
 use super::linetarget::DetectedLine;
 use super::refine::Lens;
-use super::ridge::{ridge_points, RidgePoint, SCALES};
+use super::ridge::{ridge_points, untilt, RidgePoint, SCALES};
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::line2::{distance, fit_line, intersect};
 use rigcal_core::geometry::{Vec2, Vec3};
@@ -227,6 +227,25 @@ fn merge(mut chains: Vec<Chain>) -> Vec<Line> {
     lines
 }
 
+/// Correct a line's points for the vignetting tilt across it (see `ridge`), then its
+/// ideal points, fit and extent.
+fn untilt_line(lens: Lens, l: &mut Line) {
+    let mut points = l.points.clone();
+    if untilt(&mut points).is_none() {
+        return;
+    }
+    // A point moved by hundredths of a pixel out of the lens's domain: keep the line as found.
+    let Some(ideal_pts) = points.iter().map(|p| ideal(lens, p.pos)).collect() else {
+        return;
+    };
+    l.points = points;
+    l.ideal = ideal_pts;
+    if let Some(f) = fit_line(&l.ideal) {
+        l.line = f;
+    }
+    l.span = span(&l.line, &l.ideal);
+}
+
 /// Do lines `a` and `b` cross within their extents (with `slack` px)?
 fn crossing(a: &Line, b: &Line) -> Option<Vec2> {
     if direction(&a.line).dot(&direction(&b.line)).abs() > 5f64.to_radians().cos() {
@@ -250,7 +269,10 @@ pub fn detect_line_grids(img: &Gray, lens: Lens, layout: &LineLayout) -> Vec<Lin
     // texture are weaker. Keep chains at least a third as strong as the strongest.
     let strongest = chains.iter().map(|c| c.strength).fold(0.0, f32::max);
     chains.retain(|c| c.strength >= strongest / 3.0);
-    let lines = merge(chains);
+    let mut lines = merge(chains);
+    for l in &mut lines {
+        untilt_line(lens, l);
+    }
 
     // Prints: components of the "crosses" graph, two-coloured.
     let n = lines.len();
