@@ -65,8 +65,9 @@ pub enum Command {
         /// Render the 16 images of every trial and go through the line-target detector.
         #[arg(long)]
         images: bool,
-        /// The print on the targets with --images: `l` (Wu's filled L) or `line-grid`
-        /// (a "#" of 3 × 3 thin lines, 12 mm strokes, found as ridges).
+        /// The print on the targets with --images: `l` (Wu's filled L), `line-grid`
+        /// (a "#" of 3 × 3 thin lines, 12 mm strokes, found as ridges) or
+        /// `line-grid-marked` (the same with a 60 mm orientation disc in one cell).
         #[arg(long, default_value = "l")]
         target: String,
         /// With --images: render as a real capture shows it (a textured tile floor,
@@ -213,7 +214,12 @@ pub fn run(c: Command) -> Result<i32> {
             let print = match target.as_str() {
                 "l" => rigcal_synth::ring::RingPrint::FilledL,
                 "line-grid" => rigcal_synth::ring::RingPrint::GRID,
-                other => return Err(anyhow!("--target: l or line-grid, got {other:?}")),
+                "line-grid-marked" => rigcal_synth::ring::RingPrint::GRID_MARKED,
+                other => {
+                    return Err(anyhow!(
+                        "--target: l, line-grid or line-grid-marked, got {other:?}"
+                    ))
+                }
             };
             if !images && print != rigcal_synth::ring::RingPrint::FilledL {
                 return Err(anyhow!("--target line-grid renders images: add --images"));

@@ -19,6 +19,9 @@
 //!   these the one whose crossings fit the layout's by a homography best. A symmetric
 //!   layout leaves several that fit equally; the first is reported and the vanishing
 //!   method decides between them ([`rigcal_core::target::line_layout::LineLayout::symmetries`]).
+//!   A layout with an orientation mark is read instead: each equally good labelling
+//!   predicts the disc at another place on the paper, and the one that lands on ink wins
+//!   (clearly, or the print is reported with why its mark could not be read).
 //! - **Crossings.** No point within a stroke width (plus the smoothing's reach) of a
 //!   crossing is kept: the other line's ink bends the profile there.
 
@@ -29,7 +32,7 @@ use super::ridge::{ridge_points, untilt, RidgePoint, SCALES};
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::line2::{distance, fit_line, intersect};
 use rigcal_core::geometry::{Vec2, Vec3};
-use rigcal_core::target::line_layout::{Axis, LineLayout};
+use rigcal_core::target::line_layout::{Axis, LineLayout, Mark};
 use serde::Serialize;
 
 /// One print of thin lines found in an image.
@@ -45,8 +48,13 @@ pub struct LineGridDetection {
     pub line_rms_px: f64,
     /// A line ends within reach of the image border: the print may be cut.
     pub touches_border: bool,
-    /// How many labellings fit equally (the layout's symmetries seen in this image).
+    /// How many labellings fit equally (the layout's symmetries seen in this image;
+    /// 1 once an orientation mark decided between them).
     pub equivalent_labellings: usize,
+    /// The layout has an orientation mark and it could not be read here: why. The lines
+    /// are then labelled as the first equal fit, which may be the wrong way round.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mark_error: Option<String>,
 }
 
 /// Smallest line worth measuring (ideal px).
@@ -70,6 +78,80 @@ fn ideal(lens: Lens, p: Vec2) -> Option<Vec2> {
             Some(Vec2::new(c.fx * n.x + c.cx, c.fy * n.y + c.cy))
         }
         None => Some(p),
+    }
+}
+
+/// Raw pixel of an ideal-image point (the inverse of [`ideal`]).
+fn raw(lens: Lens, q: Vec2) -> Option<Vec2> {
+    match lens.0 {
+        Some(c) => c.project(&Vec3::new((q.x - c.cx) / c.fx, (q.y - c.cy) / c.fy, 1.0)),
+        None => Some(q),
+    }
+}
+
+/// Smallest radius (px) at which an orientation mark is read: its inner half, which is
+/// what is sampled, then still spans a pixel beyond the blur.
+const MIN_MARK_RADIUS_PX: f64 = 2.0;
+/// The mark's place must be at most this fraction of the grey of the other places
+/// (paper) to be read as ink: ink is a fifth to a third of paper, while vignetting
+/// varies paper by a few percent across one print.
+const MARK_INK_RATIO: f64 = 0.6;
+
+/// Which of the equally fitting labellings (`plane_to_ideal` homographies of sheet
+/// `(x, y)`) puts the layout's mark on ink: `Ok(index)`, or why it cannot be told. All
+/// places must be in the image, so the mark's true place is always among those compared.
+fn read_mark(
+    img: &Gray,
+    lens: Lens,
+    mark: &Mark,
+    plane_to_ideal: &[nalgebra::Matrix3<f64>],
+) -> Result<usize, String> {
+    let to_raw = |h: &nalgebra::Matrix3<f64>, x: f64, z: f64| {
+        let v = h * Vec3::new(x, z, 1.0);
+        (v.z.abs() > 1e-12)
+            .then(|| Vec2::new(v.x / v.z, v.y / v.z))
+            .and_then(|q| raw(lens, q))
+    };
+    let (mx, mz, r) = (mark.centre.x, mark.centre.z, mark.radius);
+    let mut greys = Vec::with_capacity(plane_to_ideal.len());
+    for h in plane_to_ideal {
+        let c = to_raw(h, mx, mz).ok_or("its place projects outside the lens's domain")?;
+        let radius_px = [(r, 0.0), (-r, 0.0), (0.0, r), (0.0, -r)]
+            .iter()
+            .filter_map(|(dx, dz)| Some((to_raw(h, mx + dx, mz + dz)? - c).norm()))
+            .fold(f64::INFINITY, f64::min);
+        if !radius_px.is_finite() {
+            return Err("its place projects outside the lens's domain".into());
+        }
+        if radius_px < MIN_MARK_RADIUS_PX {
+            return Err(format!(
+                "the orientation mark is {radius_px:.1} px in radius here, at least {MIN_MARK_RADIUS_PX} px is needed to read it"
+            ));
+        }
+        // The inner half of the disc: the centre and two rings of 8.
+        let mut sum = img
+            .sample(c)
+            .ok_or("a place of the orientation mark is outside the image")?;
+        for ring in [0.25, 0.5] {
+            for k in 0..8 {
+                let a = k as f64 * std::f64::consts::FRAC_PI_4;
+                let p = c + ring * radius_px * Vec2::new(a.cos(), a.sin());
+                sum += img
+                    .sample(p)
+                    .ok_or("a place of the orientation mark is outside the image")?;
+            }
+        }
+        greys.push(sum / 17.0);
+    }
+    let mut order: Vec<usize> = (0..greys.len()).collect();
+    order.sort_by(|&a, &b| greys[a].total_cmp(&greys[b]));
+    match order.as_slice() {
+        [dark, next, ..] if greys[*dark] <= MARK_INK_RATIO * greys[*next] => Ok(*dark),
+        [dark, next, ..] => Err(format!(
+            "no place of the orientation mark is clearly dark (grey {:.0} against {:.0} at the next place)",
+            greys[*dark], greys[*next]
+        )),
+        _ => Ok(0),
     }
 }
 
@@ -439,7 +521,7 @@ fn label(
             .sum::<f64>()
             / plane.len() as f64)
             .sqrt();
-        fits.push((rms, xs, zs, image));
+        fits.push((rms, xs, zs, image, h));
     }
     fits.sort_by(|a, b| a.0.total_cmp(&b.0));
     let best_rms = fits.first()?.0;
@@ -448,11 +530,23 @@ fn label(
     if best_rms > stroke.max(2.0) {
         return None;
     }
-    let equivalent = fits
+    let mut equivalent = fits
         .iter()
         .filter(|f| f.0 <= best_rms + 0.1 * stroke.max(1.0))
         .count();
-    let (_, xs, zs, crossings) = fits.swap_remove(0);
+    let mut chosen = 0;
+    let mut mark_error = None;
+    if let Some(mark) = &layout.mark {
+        let hs: Vec<_> = fits[..equivalent].iter().map(|f| f.4).collect();
+        match read_mark(img, lens, mark, &hs) {
+            Ok(k) => {
+                chosen = k;
+                equivalent = 1;
+            }
+            Err(why) => mark_error = Some(why),
+        }
+    }
+    let (_, xs, zs, crossings, _) = fits.swap_remove(chosen);
 
     // Points: off the crossings and the ends (within two stroke widths of either, the
     // other line's ink or the stroke's end bends the profile: at one width the
@@ -517,16 +611,7 @@ fn label(
     widths.sort_by(f64::total_cmp);
     let centre = crossings.iter().sum::<Vec2>() / crossings.len() as f64;
     // The centre in raw pixels (for ordering prints left to right).
-    let centre = match lens.0 {
-        Some(c) => c
-            .project(&Vec3::new(
-                (centre.x - c.cx) / c.fx,
-                (centre.y - c.cy) / c.fy,
-                1.0,
-            ))
-            .unwrap_or(centre),
-        None => centre,
-    };
+    let centre = raw(lens, centre).unwrap_or(centre);
     Some(LineGridDetection {
         lines: detected,
         centre: [centre.x, centre.y],
@@ -534,5 +619,6 @@ fn label(
         line_rms_px: (sq / count.max(1) as f64).sqrt(),
         touches_border,
         equivalent_labellings: equivalent,
+        mark_error,
     })
 }

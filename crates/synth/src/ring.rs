@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_distr::{Distribution, Normal};
 use rigcal_core::geometry::line2::{bisector, distance, through};
 use rigcal_core::geometry::{so3, Camera, Pose, Vec2, Vec3};
-use rigcal_core::session::{FrameSpec, LineSpec, RingSpec, SessionManifest, TargetSpec};
+use rigcal_core::session::{FrameSpec, LineSpec, MarkSpec, RingSpec, SessionManifest, TargetSpec};
 use rigcal_core::target::line_layout::{Axis, LineLayout, Print};
 use rigcal_core::target::line_target::{LineTarget, LINES};
 use std::collections::BTreeMap;
@@ -35,7 +35,8 @@ pub const TARGET: LineTarget = LineTarget {
     spacing: 0.2,
 };
 /// The print on each target of the ring: Wu's filled L or a grid of thin lines of the
-/// same L1 and L2 (`lines_x` × `lines_y`, stroke in metres).
+/// same L1 and L2 (`lines_x` × `lines_y`, stroke in metres), with or without an
+/// orientation mark ([`MARK`]).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum RingPrint {
     FilledL,
@@ -43,8 +44,13 @@ pub enum RingPrint {
         lines_x: usize,
         lines_y: usize,
         stroke: f64,
+        marked: bool,
     },
 }
+
+/// The orientation mark of a marked grid: sheet `(x, y, radius)` (m), a 60 mm disc in
+/// the middle of a cell of the 3 × 3 grid (lines at 0 and ±L2).
+pub const MARK: [f64; 3] = [0.1, 0.1, 0.03];
 
 impl RingPrint {
     /// The "#" most people print: 3 × 3 lines, 12 mm strokes.
@@ -52,6 +58,14 @@ impl RingPrint {
         lines_x: 3,
         lines_y: 3,
         stroke: 0.012,
+        marked: false,
+    };
+    /// The same with a printed orientation mark, which removes the symmetry.
+    pub const GRID_MARKED: RingPrint = RingPrint::Grid {
+        lines_x: 3,
+        lines_y: 3,
+        stroke: 0.012,
+        marked: true,
     };
 
     pub fn layout(&self) -> LineLayout {
@@ -61,7 +75,15 @@ impl RingPrint {
                 lines_x,
                 lines_y,
                 stroke,
-            } => LineLayout::grid(TARGET.length, TARGET.spacing, lines_x, lines_y, stroke),
+                marked,
+            } => {
+                let g = LineLayout::grid(TARGET.length, TARGET.spacing, lines_x, lines_y, stroke);
+                if marked {
+                    g.with_mark(MARK[0], MARK[1], MARK[2])
+                } else {
+                    g
+                }
+            }
         }
     }
 
@@ -76,6 +98,7 @@ impl RingPrint {
                 lines_x,
                 lines_y,
                 stroke,
+                marked,
             } => TargetSpec::LineGrid {
                 id: id.into(),
                 length: TARGET.length,
@@ -83,6 +106,11 @@ impl RingPrint {
                 lines_x: lines_x as u32,
                 lines_y: lines_y as u32,
                 stroke,
+                mark: marked.then_some(MarkSpec {
+                    x: MARK[0],
+                    y: MARK[1],
+                    radius: MARK[2],
+                }),
             },
         }
     }
@@ -305,6 +333,13 @@ fn print_shade(layout: &LineLayout) -> impl Fn(f64, f64) -> Option<bool> + Sync 
             hi = hi.sup(&Vec2::new(p.x, p.z));
         }
     }
+    let mark = layout
+        .mark
+        .map(|m| (Vec2::new(m.centre.x, m.centre.z), m.radius));
+    if let Some((c, r)) = mark {
+        lo = lo.inf(&(c - Vec2::repeat(r)));
+        hi = hi.sup(&(c + Vec2::repeat(r)));
+    }
     let pad = Vec2::repeat(PRINT_MARGIN + half_stroke);
     let (lo, hi) = (lo - pad, hi + pad);
     // The L's L1 (its x extent, l6) and L2 (its arm width, where l3 runs).
@@ -332,7 +367,7 @@ fn print_shade(layout: &LineLayout) -> impl Fn(f64, f64) -> Option<bool> + Sync 
             None => boxes
                 .iter()
                 .any(|b| (b[0]..=b[1]).contains(&x) && (b[2]..=b[3]).contains(&z)),
-        };
+        } || mark.is_some_and(|(c, r)| (Vec2::new(x, z) - c).norm() <= r);
         if ink {
             Some(false)
         } else {

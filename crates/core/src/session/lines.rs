@@ -46,6 +46,7 @@ pub fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
             lines_x,
             lines_y,
             stroke,
+            mark,
             ..
         } => {
             for (name, n) in [("lines_x", lines_x), ("lines_y", lines_y)] {
@@ -72,16 +73,23 @@ pub fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
                     format!("a stroke narrower than half the spacing ({spacing} m), got {stroke}"),
                 ));
             }
-            LineLayout::grid(
-                *length,
-                *spacing,
-                *lines_x as usize,
-                *lines_y as usize,
-                *stroke,
-            )
+            with_mark(
+                LineLayout::grid(
+                    *length,
+                    *spacing,
+                    *lines_x as usize,
+                    *lines_y as usize,
+                    *stroke,
+                ),
+                mark,
+                at,
+            )?
         }
         TargetSpec::LineSegments {
-            segments, stroke, ..
+            segments,
+            stroke,
+            mark,
+            ..
         } => {
             let layout = LineLayout::from_sheet_segments(segments, *stroke)
                 .map_err(|(k, why)| InputError::new(format!("{at}.segments[{k}]"), why))?;
@@ -116,13 +124,74 @@ pub fn line_layout(t: &TargetSpec, at: &str) -> Result<LineLayout, InputError> {
                     ));
                 }
             }
-            layout
+            with_mark(layout, mark, at)?
         }
         _ => return Err(InputError::new(
             format!("{at}.type"),
             "line_target, line_grid or line_segments (the vanishing method uses only line targets)",
         )),
     };
+    Ok(layout)
+}
+
+/// `layout` with the orientation mark of its spec (`at.mark`), which must be readable:
+/// clear of every stroke by a stroke width, and moved by every symmetry of the lines by
+/// more than its diameter (so no other labelling puts a disc where the mark is).
+fn with_mark(
+    layout: LineLayout,
+    mark: &Option<MarkSpec>,
+    at: &str,
+) -> Result<LineLayout, InputError> {
+    let Some(m) = mark else {
+        return Ok(layout);
+    };
+    for (name, v) in [("x", m.x), ("y", m.y)] {
+        if !v.is_finite() {
+            return Err(InputError::new(
+                format!("{at}.mark.{name}"),
+                format!("a finite sheet coordinate (m), got {v}"),
+            ));
+        }
+    }
+    if !(m.radius.is_finite() && m.radius > 0.0) {
+        return Err(InputError::new(
+            format!("{at}.mark.radius"),
+            format!("a positive radius in metres, got {}", m.radius),
+        ));
+    }
+    let stroke = match layout.print {
+        crate::target::line_layout::Print::Strokes { width } => width,
+        crate::target::line_layout::Print::Outline => 0.0,
+    };
+    let centre = crate::geometry::Vec3::new(m.x, 0.0, m.y);
+    for (k, s) in layout.segments.iter().enumerate() {
+        // Distance from the centre to the segment (both in the target's y = 0 plane).
+        let d = s.to - s.from;
+        let t = ((centre - s.from).dot(&d) / d.norm_squared()).clamp(0.0, 1.0);
+        let gap = (centre - (s.from + t * d)).norm() - m.radius - stroke / 2.0;
+        if gap < stroke {
+            return Err(InputError::new(
+                format!("{at}.mark"),
+                format!(
+                    "a disc clear of every stroke by at least a stroke width ({stroke} m); it is {gap:.4} m from line {}",
+                    k + 1
+                ),
+            ));
+        }
+    }
+    let layout = layout.with_mark(m.x, m.y, m.radius);
+    for g in layout.line_symmetries().iter().skip(1) {
+        let moved = (g.target_from_labelled.apply(&centre) - centre).norm();
+        if moved <= 2.0 * m.radius {
+            return Err(InputError::new(
+                format!("{at}.mark"),
+                format!(
+                    "a disc away from the print's centre of symmetry (a {}° turn moves it by {moved:.4} m, less than its diameter, so it cannot tell the labellings apart)",
+                    g.degrees
+                ),
+            ));
+        }
+    }
     Ok(layout)
 }
 
@@ -530,5 +599,56 @@ mod tests {
         m["targets"][1] = json!({"id": "t2", "type": "line_segments", "stroke": 0.01, "segments": [
             seg([-0.2, 0.0], [0.2, 0.0]), seg([0.0, -0.2], [0.0, 0.2])]});
         assert_eq!(field(m), "targets[1].segments");
+    }
+
+    #[test]
+    fn an_orientation_mark_breaks_the_symmetry_and_must_be_readable() {
+        let grid = |mark: Value| json!({"id": "t1", "type": "line_grid", "length": 0.5, "spacing": 0.2, "lines_x": 2, "lines_y": 2, "stroke": 0.012, "mark": mark});
+        let mut m = ring();
+        m["targets"][0] = grid(json!({"x": 0.0, "y": 0.0, "radius": 0.03}));
+        let mut unmarked = m.clone();
+        unmarked["targets"][0]
+            .as_object_mut()
+            .unwrap()
+            .remove("mark");
+        let layout = |m: &Value| {
+            parse_session(m.to_string().as_bytes())
+                .unwrap()
+                .vanishing
+                .unwrap()
+                .targets[0]
+                .layout
+                .clone()
+        };
+        // At the centre of symmetry it cannot tell labellings apart.
+        assert_eq!(field(m.clone()), "targets[0].mark");
+        assert_eq!(layout(&unmarked).symmetries().len(), 4);
+        m["targets"][0] = grid(json!({"x": 0.2, "y": 0.0, "radius": 0.03}));
+        let l = layout(&m);
+        assert_eq!(l.symmetries().len(), 1);
+        assert_eq!(
+            l.mark.unwrap().centre,
+            crate::geometry::Vec3::new(0.2, 0.0, 0.0)
+        );
+        for (mark, expected) in [
+            // On the line x = 0.1.
+            (
+                json!({"x": 0.1, "y": 0.0, "radius": 0.03}),
+                "targets[0].mark",
+            ),
+            (
+                json!({"x": 0.2, "y": 0.0, "radius": -0.03}),
+                "targets[0].mark.radius",
+            ),
+            (
+                json!({"x": 0.2, "y": 0.0, "radius": 0.0}),
+                "targets[0].mark.radius",
+            ),
+        ] {
+            m["targets"][0] = grid(mark.clone());
+            assert_eq!(field(m.clone()), expected, "{mark}");
+        }
+        m["targets"][0] = grid(json!({"x": 0.2, "y": 0.0}));
+        assert!(parse_session(m.to_string().as_bytes()).is_err());
     }
 }

@@ -102,6 +102,8 @@ pub enum TargetSpec {
         lines_x: u32,
         lines_y: u32,
         stroke: f64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mark: Option<MarkSpec>,
     },
     /// Thin printed lines at explicit places: segments `[[x0, y0], [x1, y1]]` (m) in
     /// sheet coordinates, each along the sheet's `x` or `y`, strokes `stroke` wide.
@@ -109,6 +111,8 @@ pub enum TargetSpec {
         id: String,
         segments: Vec<[[f64; 2]; 2]>,
         stroke: f64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        mark: Option<MarkSpec>,
     },
     /// Points of known coordinates (m) in the target's own frame: a rigid body.
     Points {
@@ -138,6 +142,16 @@ impl TargetSpec {
             | TargetSpec::Points { id, .. } => id,
         }
     }
+}
+
+/// An orientation mark on a thin-line target: a filled dark disc of `radius` (m) centred
+/// at sheet `(x, y)`, off the print's centre of symmetry.
+#[derive(Clone, Copy, Debug, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MarkSpec {
+    pub x: f64,
+    pub y: f64,
+    pub radius: f64,
 }
 
 /// A measured distance between two points (Lébraly §2), fixing the metric scale.

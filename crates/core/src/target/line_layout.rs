@@ -13,7 +13,8 @@
 //! the segments, their two groups, the crossings of every `x` line with every `z` line
 //! (points of known target coordinates where the infinite lines meet, which fix the
 //! translation), and the layout's symmetries, which make a line's label in one image
-//! ambiguous.
+//! ambiguous. An optional printed orientation mark (a filled disc off the centre of
+//! symmetry) breaks them: the detector reads which way round the print was seen.
 
 use crate::geometry::{so3, Pose, Vec3};
 
@@ -52,10 +53,21 @@ pub enum Print {
     Strokes { width: f64 },
 }
 
+/// A filled dark disc printed on the sheet to tell the layout's symmetric labellings
+/// apart: only one of them puts the disc where the print has it.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Mark {
+    /// Centre in the target frame (`y = 0`).
+    pub centre: Vec3,
+    /// Radius (m).
+    pub radius: f64,
+}
+
 #[derive(Clone, Debug, PartialEq)]
 pub struct LineLayout {
     pub segments: Vec<Segment>,
     pub print: Print,
+    pub mark: Option<Mark>,
 }
 
 /// Relative tolerance on coordinates when matching a layout with its rotation.
@@ -79,6 +91,7 @@ impl LineLayout {
         Self {
             segments,
             print: Print::Outline,
+            mark: None,
         }
     }
 
@@ -108,6 +121,7 @@ impl LineLayout {
         Self {
             segments,
             print: Print::Strokes { width: stroke },
+            mark: None,
         }
     }
 
@@ -149,7 +163,19 @@ impl LineLayout {
         Ok(Self {
             segments: out,
             print: Print::Strokes { width: stroke },
+            mark: None,
         })
+    }
+
+    /// The layout with an orientation mark at sheet `(x, y)`, `radius` m.
+    pub fn with_mark(self, x: f64, y: f64, radius: f64) -> Self {
+        Self {
+            mark: Some(Mark {
+                centre: Vec3::new(x, 0.0, y),
+                radius,
+            }),
+            ..self
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -200,9 +226,20 @@ impl LineLayout {
     }
 
     /// The rotations about the sheet normal through [`Self::centre`] (identity first)
-    /// that map every segment onto a segment: the labellings one image cannot tell
-    /// apart. The L has only the identity; a 3×2 grid a half-turn; a 3×3 grid quarter-turns.
+    /// that map every segment onto a segment and the mark, if any, onto itself: the
+    /// labellings one image cannot tell apart. The L has only the identity; a 3×2 grid a
+    /// half-turn; a 3×3 grid quarter-turns; a marked grid only the identity.
     pub fn symmetries(&self) -> Vec<Symmetry> {
+        let tol = 1e-6 * self.extent().max(1e-12);
+        let mut out = self.line_symmetries();
+        if let Some(m) = self.mark {
+            out.retain(|g| (g.target_from_labelled.apply(&m.centre) - m.centre).norm() < tol);
+        }
+        out
+    }
+
+    /// The symmetries of the lines alone (what a detector sees before it reads a mark).
+    pub fn line_symmetries(&self) -> Vec<Symmetry> {
         let c = self.centre();
         let tol = 1e-6 * self.extent().max(1e-12);
         let mut out = Vec::new();
@@ -291,6 +328,11 @@ mod tests {
         )
         .unwrap();
         assert_eq!(uneven.symmetries().len(), 1);
+        // A mark off the centre leaves only the identity; one at the centre changes nothing.
+        let marked = g33.clone().with_mark(0.1, 0.1, 0.03);
+        assert_eq!(marked.symmetries().len(), 1);
+        assert_eq!(marked.line_symmetries().len(), 4);
+        assert_eq!(g33.with_mark(0.0, 0.0, 0.03).symmetries().len(), 4);
     }
 
     #[test]

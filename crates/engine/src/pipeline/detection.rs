@@ -463,6 +463,8 @@ struct Print {
     size: f64,
     /// Cut by the image border (a grid whose lines end at the border).
     cut: bool,
+    /// Its layout's orientation mark could not be read: why (its labels are unknown).
+    unread_mark: Option<String>,
 }
 
 /// Every print of `layout` in the image: the filled L by its outline, thin lines as
@@ -477,6 +479,7 @@ fn find_prints(gray: &Gray, lens: Lens, layout: &LineLayout) -> Vec<Print> {
                     centre_u: c.iter().map(|p| p[0]).sum::<f64>() / c.len() as f64,
                     size: (c[0][0] - c[3][0]).hypot(c[0][1] - c[3][1]),
                     cut: false, // the outline detector refuses prints touching the border
+                    unread_mark: None,
                     lines: d.lines.into_iter().map(|l| (l.line, l.points)).collect(),
                 }
             })
@@ -495,6 +498,7 @@ fn find_prints(gray: &Gray, lens: Lens, layout: &LineLayout) -> Vec<Print> {
                     centre_u: d.centre[0],
                     size: (hi[0] - lo[0]).hypot(hi[1] - lo[1]),
                     cut: d.touches_border,
+                    unread_mark: d.mark_error,
                     lines: d.lines.into_iter().map(|l| (l.line, l.points)).collect(),
                 }
             })
@@ -509,15 +513,21 @@ fn what(layout: &LineLayout) -> &'static str {
     }
 }
 
-fn line_specs(p: &Print, target: &str) -> Vec<LineSpec> {
-    p.lines
+/// The print's lines as observations of `target`, or why its labels are unknown.
+fn line_specs(p: &Print, target: &str) -> Result<Vec<LineSpec>, String> {
+    if let Some(why) = &p.unread_mark {
+        return Err(format!(
+            "target {target}: its lines were found but not which way round: {why}"
+        ));
+    }
+    Ok(p.lines
         .iter()
         .map(|(line, points)| LineSpec {
             target: target.to_string(),
             line: *line as u8,
             points: points.clone(),
         })
-        .collect()
+        .collect())
 }
 
 /// Line targets in a rig image (the one `frames[0].line_targets` names: the largest
@@ -563,7 +573,7 @@ fn line_slot(
                 .filter(|p| !p.cut)
                 .max_by(|a, b| a.size.total_cmp(&b.size));
             match best {
-                Some(p) => Ok((line_specs(p, target), n)),
+                Some(p) => Ok((line_specs(p, target)?, n)),
                 None if n > 0 => Err(format!(
                     "expected {} (target {target}) fully in view, found {n} cut by the image border",
                     what(layout)
@@ -606,8 +616,8 @@ fn line_slot(
                     off(i).total_cmp(&off(j))
                 })
                 .unwrap_or(0);
-            let mut lines = line_specs(&complete[k], a);
-            lines.extend(line_specs(&complete[k + 1], b));
+            let mut lines = line_specs(&complete[k], a)?;
+            lines.extend(line_specs(&complete[k + 1], b)?);
             Ok((lines, n))
         }
     }
