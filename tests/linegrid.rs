@@ -303,21 +303,31 @@ fn grid_detections_recover_the_ring_exactly_whichever_way_round_each_view_labell
     }
 }
 
-/// Wu's Table 2 ring printed with `print`, rendered noise-free and calibrated from its
-/// images: the result and its errors (mm, °) against the truth.
-fn ring_from_images(print: RingPrint) -> (rigcal_core::result::ResultDocument, f64, f64) {
+/// Wu's Table 2 ring printed with `print`, rendered noise-free: session, truth, images.
+fn ring_images(
+    print: RingPrint,
+) -> (
+    rigcal_core::session::SessionManifest,
+    rigcal_synth::Truth,
+    std::collections::BTreeMap<String, Vec<u8>>,
+) {
     let look = rigcal_synth::ring::RingImages {
         print,
         nuisance: None,
     };
-    let (m, truth, files) = rigcal_synth::ring::image_session_with(
+    rigcal_synth::ring::image_session_with(
         &rig_camera(),
         &aux_camera(),
         &table2_scene(),
         &look,
         0.0,
         1,
-    );
+    )
+}
+
+/// That ring calibrated from its images: the result and its errors (mm, °).
+fn ring_from_images(print: RingPrint) -> (rigcal_core::result::ResultDocument, f64, f64) {
+    let (m, truth, files) = ring_images(print);
     let session = rigcal_core::session::from_manifest(m).unwrap();
     let source = rigcal_engine::pipeline::detection::MemorySource(files.into_iter().collect());
     let doc = rigcal_engine::pipeline::run(
@@ -412,29 +422,8 @@ fn the_mark_labels_every_view_as_printed_and_a_missing_mark_is_reported() {
 #[test]
 fn an_image_whose_mark_cannot_be_read_is_an_image_error_naming_its_target() {
     // The session says the grids carry a mark; the images were printed without it.
-    let rig = rig_camera();
-    let (m, _, _) = rigcal_synth::ring::image_session_with(
-        &rig,
-        &aux_camera(),
-        &table2_scene(),
-        &rigcal_synth::ring::RingImages {
-            print: RingPrint::GRID_MARKED,
-            nuisance: None,
-        },
-        0.0,
-        1,
-    );
-    let (_, _, unmarked) = rigcal_synth::ring::image_session_with(
-        &rig,
-        &aux_camera(),
-        &table2_scene(),
-        &rigcal_synth::ring::RingImages {
-            print: RingPrint::GRID,
-            nuisance: None,
-        },
-        0.0,
-        1,
-    );
+    let (m, _, _) = ring_images(RingPrint::GRID_MARKED);
+    let (_, _, unmarked) = ring_images(RingPrint::GRID);
     let session = rigcal_core::session::from_manifest(m).unwrap();
     let source = rigcal_engine::pipeline::detection::MemorySource(unmarked.into_iter().collect());
     let slot = &rigcal_core::session::image_slots(&session)[0];
