@@ -552,6 +552,10 @@ fn label(
     // other line's ink or the stroke's end bends the profile: at one width the
     // noise-free error on Wu's ring was 3.5 times that at two), every ⌈2σ⌉-th (the
     // smoothing correlates neighbours; independent points keep the method's σ honest).
+    // The smoothing reaches ~4σ from a point in every direction, and a line crossing
+    // this one at an angle θ (or the square end of this stroke, cut along the other
+    // group) is only `t·sin θ` from a point `t` along it: in a steep rig view (θ ≈ 22°)
+    // the last points kept by the perpendicular rule were 0.04-0.09 px off.
     let mut detected = Vec::new();
     let mut widths = Vec::new();
     let mut sq = 0.0;
@@ -570,10 +574,17 @@ fn label(
             .iter()
             .filter_map(|&j| {
                 let x = intersect(&l.line, &lines[j].line)?;
-                Some((x.dot(&d), 4.0 * lines[j].sigma + 4.0 * l.sigma))
+                let sin = direction(&lines[j].line).perp(&d).abs().max(0.2);
+                let (sj, sl) = (lines[j].sigma, l.sigma);
+                Some((x.dot(&d), (4.0 * (sj + sl)).max((sj + 4.0 * sl) / sin)))
             })
             .collect();
-        let reach = 4.0 * l.sigma;
+        let sin = if k < xs.len() { &zs } else { &xs }
+            .iter()
+            .map(|&j| direction(&lines[j].line).perp(&d).abs())
+            .fold(1.0f64, f64::min)
+            .max(0.2);
+        let reach = 4.0 * l.sigma / sin;
         let mut keep: Vec<(f64, Vec2, Vec2)> = l
             .points
             .iter()
