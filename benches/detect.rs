@@ -2,6 +2,7 @@
 //! `car-hall` preset, seed 1, frame 0 of the front camera: 8 AprilGrids and wall tags,
 //! 77 tags; blur, vignetting, gain, noise, JPEG q 92), so that regressions of the
 //! detector's speed show, at both detection qualities. The image is rendered once per run (a few seconds).
+//! Also one realistic view of a thin-line "#" grid (`line_grid_rig_view`).
 //! Medians over samples; see docs/performance.md.
 
 use rigcal_detect::gray::Gray;
@@ -22,4 +23,41 @@ fn dense_hall_image_1080p(bencher: divan::Bencher, quality: Quality) {
     let opts = DetectOptions::of_quality(quality);
     rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
     bencher.bench(|| detect_tags(&img, &h.targets, Some(camera), &opts).expect("detect"));
+}
+
+/// Thin-line targets: one realistic 1024×768 rig view of the "#" grid of Wu's ring
+/// (camera 0 of Table 2's scene, radtan lens, textured floor, blur, vignetting, noise σ 2
+/// grey, JPEG q 92), ridge points at every scale through labelling.
+#[divan::bench(sample_count = 10)]
+fn line_grid_rig_view(bencher: divan::Bencher) {
+    use rigcal_core::geometry::{Camera, CameraModel};
+    use rigcal_detect::linegrid::detect_line_grids;
+    use rigcal_detect::refine::Lens;
+    use rigcal_synth::ring::{render_line_targets_real, rig_camera, table2_scene, RingPrint};
+    let scene = table2_scene();
+    let print = RingPrint::GRID;
+    let layout = print.layout();
+    let nuisance = Nuisance {
+        noise: 2.0,
+        ..Nuisance::default()
+    };
+    let cam = Camera {
+        model: CameraModel::Radtan {
+            k1: -0.25,
+            k2: 0.08,
+            p1: 0.0005,
+            p2: -0.0004,
+            k3: 0.0,
+        },
+        ..rig_camera()
+    };
+    let pose = scene.ecf_from_cam[0].inverse() * scene.ecf_from_target[0] * print.l_from_target();
+    let img = render_line_targets_real(&cam, &[pose], &layout, &nuisance, 40);
+    let jpeg = Hall::encode(&img, &nuisance).expect("encode");
+    let gray = Gray::from_dynamic(&image::load_from_memory(&jpeg).expect("decode"));
+    bencher.bench(|| {
+        let found = detect_line_grids(&gray, Lens(Some(&cam)), &layout);
+        assert_eq!(found.len(), 1, "one print");
+        found
+    });
 }

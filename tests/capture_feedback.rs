@@ -369,19 +369,9 @@ async fn a_job_does_not_wait_for_every_pending_upload() {
 async fn a_job_reuses_only_upload_detections_as_accurate_as_it_asked() {
     let dir = tempfile::tempdir().unwrap();
     let key = api_key(dir.path(), "acme");
-    // A short lease: on PostgreSQL one detection of an archive's images is at times
-    // taken up again only when its lease expires (30 s by default; seen 2026-12-03, not
-    // yet explained). This test is about which outcomes a job reuses.
     let s = Server::start(
         dir.path(),
-        &[
-            "--workers",
-            "1",
-            "--lease-seconds",
-            "5",
-            "--upload-detect-quality",
-            "fast",
-        ],
+        &["--workers", "1", "--upload-detect-quality", "fast"],
     );
     let c = client(&key);
     let manifest = image_session(2, 32, 24);

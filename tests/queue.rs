@@ -249,3 +249,48 @@ async fn detections_without_an_outcome_back_off_then_fail_at_the_limit() {
     let events = store.session_events_after(&s, 0).await.unwrap();
     assert_eq!(events.iter().filter(|e| e.kind == "image").count(), 1);
 }
+
+/// A claim of one uploaded image's detection leases exactly one, however many are
+/// pending: on PostgreSQL the limited `IN (… FOR UPDATE SKIP LOCKED)` subquery was
+/// evaluated again for each row the update scanned (its clock is volatile), so a claim
+/// of one leased two or three rows, returned them all, and the worker, which ran the
+/// one it asked for, left the others to wait out their lease (30 s).
+#[tokio::test]
+async fn a_claim_of_one_detection_leases_exactly_one() {
+    use rigcal_service::store::ImageRow;
+    let (_d, store, _q, _t, s) = setup().await;
+    let images = 6;
+    for frame in 0..images {
+        let img = ImageRow {
+            camera: "front".into(),
+            frame,
+            sha256: format!("{frame:064x}"),
+            bytes: 10,
+            format: "png".into(),
+            width: 4,
+            height: 4,
+        };
+        store.insert_image(&s, &img, true).await.unwrap();
+    }
+    let mut frames = Vec::new();
+    for k in 0..images {
+        let got = store
+            .claim_detections(&format!("w{k}"), 60_000, 1)
+            .await
+            .unwrap();
+        let leased: Vec<i64> = got.iter().map(|t| t.frame).collect();
+        assert_eq!(leased.len(), 1, "claim {k} leased frames {leased:?}");
+        frames.push(got[0].frame);
+    }
+    frames.sort();
+    assert_eq!(
+        frames,
+        (0..images).collect::<Vec<_>>(),
+        "oldest first, each once"
+    );
+    assert!(store
+        .claim_detections("late", 60_000, 1)
+        .await
+        .unwrap()
+        .is_empty());
+}

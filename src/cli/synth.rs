@@ -66,9 +66,8 @@ pub fn run(a: Args) -> Result<i32> {
     }
     let (session, truth) = rigcal_synth::generate(&a.preset, a.seed, a.noise).ok_or_else(|| {
         anyhow!(
-            "--preset: one of {}, {}, got {:?}",
+            "--preset: one of {}, got {:?}",
             rigcal_synth::PRESETS.join(", "),
-            hall::PRESETS.join(", "),
             a.preset
         )
     })?;

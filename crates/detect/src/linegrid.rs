@@ -6,7 +6,7 @@
 //! Everything geometric happens in the *ideal* image (the measured points undistorted
 //! through the lens, never the image resampled), where the printed lines are straight.
 //!
-//! - **Linking.** Neighbouring line pixels whose normals agree within 15° and whose
+//! - **Linking.** Neighbouring line pixels whose normals agree within 6° and whose
 //!   centres lie on one line are joined; chains are cut where the Hessian degenerates,
 //!   i.e. at every crossing, and collinear chains are merged back into one line.
 //! - **One print.** Lines that cross each other (within their extents) belong to one
@@ -172,7 +172,7 @@ fn chains(img: &Gray, lens: Lens, pts: &[RidgePoint]) -> Vec<Chain> {
         at[p.pixel.1 as usize * w + p.pixel.0 as usize] = k;
     }
     let mut parent: Vec<usize> = (0..pts.len()).collect();
-    let cos15 = 6f64.to_radians().cos();
+    let cos6 = 6f64.to_radians().cos();
     for (k, p) in pts.iter().enumerate() {
         let (x, y) = (p.pixel.0 as i64, p.pixel.1 as i64);
         for (dx, dy) in [(1, 0), (0, 1), (1, 1), (-1, 1)] {
@@ -185,7 +185,7 @@ fn chains(img: &Gray, lens: Lens, pts: &[RidgePoint]) -> Vec<Chain> {
                 continue;
             }
             let q = &pts[j];
-            if p.normal.dot(&q.normal).abs() < cos15 || (q.pos - p.pos).dot(&p.normal).abs() > 0.7 {
+            if p.normal.dot(&q.normal).abs() < cos6 || (q.pos - p.pos).dot(&p.normal).abs() > 0.7 {
                 continue;
             }
             let (a, b) = (root(&mut parent, k), root(&mut parent, j));

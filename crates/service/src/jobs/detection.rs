@@ -201,26 +201,33 @@ pub async fn run_batch(
     let mut drained = false;
     loop {
         while !drained && running.len() < limit && claimed < IMAGES_PER_TURN {
-            let Some(task) = store.claim_detections(name, lease_ms, 1).await?.pop() else {
+            let tasks = store.claim_detections(name, lease_ms, 1).await?;
+            if tasks.is_empty() {
                 drained = true;
                 break;
-            };
-            claimed += 1;
-            if !sessions.contains_key(&task.session_id) {
-                let parsed = load_session(store, &task.session_id).await?;
-                sessions.insert(task.session_id.clone(), parsed);
             }
-            let session = sessions[&task.session_id].clone();
-            let blobs = store.blobs.clone();
-            running.push(async move {
-                let t = task.clone();
-                let outcome = tokio::task::spawn_blocking(move || {
-                    detect_one(&t, session, &blobs, max_pixels, quality)
-                })
-                .await
-                .unwrap_or_else(|e| Err(format!("internal error: the detection task failed: {e}")));
-                (task, outcome)
-            });
+            // Every task the claim returned is run: a leased row left aside would wait
+            // out its lease.
+            for task in tasks {
+                claimed += 1;
+                if !sessions.contains_key(&task.session_id) {
+                    let parsed = load_session(store, &task.session_id).await?;
+                    sessions.insert(task.session_id.clone(), parsed);
+                }
+                let session = sessions[&task.session_id].clone();
+                let blobs = store.blobs.clone();
+                running.push(async move {
+                    let t = task.clone();
+                    let outcome = tokio::task::spawn_blocking(move || {
+                        detect_one(&t, session, &blobs, max_pixels, quality)
+                    })
+                    .await
+                    .unwrap_or_else(|e| {
+                        Err(format!("internal error: the detection task failed: {e}"))
+                    });
+                    (task, outcome)
+                });
+            }
         }
         let Some((task, outcome)) = running.next().await else {
             break;

@@ -73,14 +73,20 @@ const CLAIM_SQLITE: &str = "UPDATE image_detections SET lease_owner = $1, lease_
                   AND (lease_expires_at IS NULL OR lease_expires_at < NOW_MS)
                   ORDER BY created_at LIMIT $3)
      RETURNING id, session_id, camera, frame, sha256, attempts";
-// The outer conditions are checked again on the locked rows: a row another worker
-// claimed between the inner select and the lock is skipped.
-const CLAIM_POSTGRES: &str = "UPDATE image_detections SET lease_owner = $1, lease_expires_at = NOW_MS + $2, attempts = attempts + 1
-     WHERE id IN (SELECT id FROM image_detections WHERE status = 'pending'
-                  AND (lease_expires_at IS NULL OR lease_expires_at < NOW_MS)
-                  ORDER BY created_at LIMIT $3 FOR UPDATE SKIP LOCKED)
-       AND status = 'pending' AND (lease_expires_at IS NULL OR lease_expires_at < NOW_MS)
-     RETURNING id, session_id, camera, frame, sha256, attempts";
+// The rows are picked once, in a materialised CTE: as `id IN (SELECT … LIMIT n FOR
+// UPDATE SKIP LOCKED)` PostgreSQL evaluated the subquery again for each row the update
+// scanned (its clock is volatile), and each evaluation skipped the rows the previous
+// had locked, so a claim of one leased every pending row. The outer conditions are
+// checked again on the locked rows: a row another worker claimed between the pick and
+// the lock is skipped.
+const CLAIM_POSTGRES: &str = "WITH picked AS MATERIALIZED (
+        SELECT id FROM image_detections WHERE status = 'pending'
+          AND (lease_expires_at IS NULL OR lease_expires_at < NOW_MS)
+        ORDER BY created_at LIMIT $3 FOR UPDATE SKIP LOCKED)
+     UPDATE image_detections d SET lease_owner = $1, lease_expires_at = NOW_MS + $2, attempts = d.attempts + 1
+     FROM picked WHERE d.id = picked.id
+       AND d.status = 'pending' AND (d.lease_expires_at IS NULL OR d.lease_expires_at < NOW_MS)
+     RETURNING d.id, d.session_id, d.camera, d.frame, d.sha256, d.attempts";
 
 fn task_from(r: &Rec) -> sqlx::Result<DetectionTask> {
     Ok(DetectionTask {
