@@ -93,7 +93,7 @@ struct Mirrored<'a> {
 impl<'a> Mirrored<'a> {
     fn of(k: &'a [f32]) -> Self {
         let r = k.len() / 2;
-        let odd = k[r] == 0.0 && k.len() > 1 && k[r + 1] == -k[r - 1];
+        let odd = k.len() > 1 && k[r] == 0.0 && k[r + 1] == -k[r - 1];
         debug_assert!((1..=r).all(|j| {
             let m = if odd { -k[r - j] } else { k[r - j] };
             (k[r + j] - m).abs() <= 1e-6 * k[r + j].abs().max(1e-12)
