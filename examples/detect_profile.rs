@@ -17,6 +17,9 @@ struct Truth {
     corners: BTreeMap<String, [f64; 2]>,
 }
 
+/// Upper bounds (px, shortest side) of the tag-size bins of the outward-bias table.
+const SIZE_BINS: [f64; 4] = [20.0, 30.0, 46.0, 80.0];
+
 fn main() {
     let a: Vec<String> = std::env::args().collect();
     let dir = std::path::PathBuf::from(&a[1]);
@@ -43,6 +46,8 @@ fn main() {
         .and_then(|r| r.parse().ok())
         .unwrap_or(1);
     rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
+    let mut scale: BTreeMap<String, [f64; 2]> = BTreeMap::new();
+    let mut outward: Vec<Vec<f64>> = vec![vec![]; SIZE_BINS.len() + 1];
     let (mut ms, mut legible, mut found, mut wrong, mut sq, mut n) = (vec![], 0, 0, 0, 0.0, 0);
     for t in truth.iter().filter(|t| t.frame < frames) {
         let camera = &s
@@ -82,6 +87,44 @@ fn main() {
             println!("{}: missed {missed:?}", t.path);
         }
         found += tags.len() - missed.len();
+        for tag in &tags {
+            let truth: Option<Vec<[f64; 2]>> = (0..4)
+                .map(|k| t.corners.get(&format!("{tag}:{k}")).copied())
+                .collect();
+            let det: Option<Vec<[f64; 2]>> = (0..4)
+                .map(|k| got.get(format!("{tag}:{k}").as_str()).copied())
+                .collect();
+            let (Some(truth), Some(det)) = (truth, det) else {
+                continue;
+            };
+            let c = truth
+                .iter()
+                .fold([0.0, 0.0], |a, p| [a[0] + p[0] / 4.0, a[1] + p[1] / 4.0]);
+            let side = (0..4)
+                .map(|k| {
+                    let (a, b) = (truth[k], truth[(k + 1) % 4]);
+                    (a[0] - b[0]).hypot(a[1] - b[1])
+                })
+                .fold(f64::INFINITY, f64::min);
+            let bin = SIZE_BINS
+                .iter()
+                .position(|&b| side < b)
+                .unwrap_or(SIZE_BINS.len());
+            for k in 0..4 {
+                let (q, p) = (truth[k], det[k]);
+                let r = (q[0] - c[0]).hypot(q[1] - c[1]);
+                let e = [p[0] - q[0], p[1] - q[1]];
+                if e[0].hypot(e[1]) > 1.0 {
+                    continue;
+                }
+                let out = (e[0] * (q[0] - c[0]) + e[1] * (q[1] - c[1])) / r;
+                outward[bin].push(out);
+                let d = [q[0] - g.width as f64 / 2.0, q[1] - g.height as f64 / 2.0];
+                let sc = scale.entry(t.camera.clone()).or_insert([0.0; 2]);
+                sc[0] += e[0] * d[0] + e[1] * d[1];
+                sc[1] += d[0] * d[0] + d[1] * d[1];
+            }
+        }
         for (k, c) in &t.corners {
             if let Some(p) = got.get(k.as_str()) {
                 let e = (p[0] - c[0]).hypot(p[1] - c[1]);
@@ -103,4 +146,31 @@ fn main() {
         100.0 * found as f64 / legible.max(1) as f64,
         (sq / n.max(1) as f64).sqrt()
     );
+    // Outward bias: the mean offset of detected corners away from the tag's centre, by
+    // tag size; a tag that reads systematically larger or smaller biases every distance.
+    for (i, o) in outward.iter().enumerate() {
+        if o.is_empty() {
+            continue;
+        }
+        let n = o.len() as f64;
+        let m = o.iter().sum::<f64>() / n;
+        let sd = (o.iter().map(|x| (x - m).powi(2)).sum::<f64>() / n).sqrt();
+        let lo = if i == 0 { 0.0 } else { SIZE_BINS[i - 1] };
+        let hi = SIZE_BINS.get(i).copied().unwrap_or(f64::INFINITY);
+        println!(
+            "  sides {lo:>3}-{hi:<4} px: {:>6} corners, outward {:+.5} ± {:.5} px (sd {:.4})",
+            o.len(),
+            m,
+            sd / n.sqrt(),
+            sd
+        );
+    }
+    // Scale about the image centre: corners shifted in proportion to their distance
+    // from it read as a different focal length, i.e. a different distance to the target.
+    for (cam, [num, den]) in &scale {
+        println!(
+            "  {cam}: scale about the image centre {:+.2} ppm",
+            1e6 * num / den
+        );
+    }
 }

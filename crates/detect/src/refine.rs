@@ -13,7 +13,7 @@
 
 use super::gray::Gray;
 use rigcal_core::geometry::line2::{distance, fit_line, intersect};
-use rigcal_core::geometry::{normal_cdf, Camera, Vec2, Vec3};
+use rigcal_core::geometry::{normal_cdf, normal_cdf_pdf, Camera, Vec2, Vec3};
 use rigcal_solve::lm::{minimize, Damping, Dense, LeastSquares, Rules};
 
 /// Maps between raw pixels and the plane where a tag's sides are straight.
@@ -44,6 +44,20 @@ impl Lens<'_> {
             None => Some(q),
         }
     }
+
+    /// The pixel of plane point `q` and the unit direction, in raw pixels, of the plane
+    /// direction `dir` there (one projection: its Jacobian carries the direction).
+    pub fn to_pixel_along(&self, q: Vec2, dir: Vec2) -> Option<(Vec2, Vec2)> {
+        let (p, along) = match self.0 {
+            Some(c) => {
+                let (p, j) = c.project_with_jacobian(&Vec3::new(q.x, q.y, 1.0))?;
+                (p, j.fixed_columns::<2>(0) * dir)
+            }
+            None => (q, dir),
+        };
+        let norm = along.norm();
+        (norm > 0.0 && norm.is_finite()).then(|| (p, along / norm))
+    }
 }
 
 /// A refined quad and how well its sides fit.
@@ -63,22 +77,38 @@ pub struct Refined {
 fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Option<(f64, f64)> {
     let at = |s: f64| img.sample(p + n * s);
     // Coarse: the steepest dark→bright step, from one sampling of the profile every ¼ px
-    // (the step at s is I(s + ½) − I(s − ½), two samples apart).
-    let step = 0.25;
-    let k = (reach / step).ceil() as i32;
-    let levels: Vec<f64> = (-k - 2..=k + 2)
-        .map(|i| at(i as f64 * step))
-        .collect::<Option<_>>()?;
+    // (the step at s is I(s + ½) − I(s − ½), two samples apart). The samples stay on the
+    // stack for the usual reaches.
+    const STEP: f64 = 0.25;
+    let k = (reach / STEP).ceil() as i32;
+    let count = (2 * k + 5) as usize;
+    let mut stack = [0.0; 64];
+    let mut heap = Vec::new();
+    let levels: &mut [f64] = if count <= stack.len() {
+        &mut stack[..count]
+    } else {
+        heap.resize(count, 0.0);
+        &mut heap
+    };
+    for (i, l) in levels.iter_mut().enumerate() {
+        *l = at((i as i32 - k - 2) as f64 * STEP)?;
+    }
+    let levels = &*levels;
     let mut best = (f64::NEG_INFINITY, 0.0);
     for i in 0..=(2 * k) as usize {
         let g = levels[i + 4] - levels[i];
         if g > best.0 {
-            best = (g, (i as i32 - k) as f64 * step);
+            best = (g, (i as i32 - k) as f64 * STEP);
         }
     }
     if best.0 <= 0.0 {
         return None;
     }
+    // Profile value at grid index `i` (s = (i − k − 2)·¼), where sampled.
+    let on_grid = |s: f64| -> Option<(i64, f64)> {
+        let i = (s / STEP).floor() as i64 + k as i64 + 2;
+        (i >= 0 && (i as usize) < levels.len()).then(|| (i, levels[i as usize]))
+    };
     let mut e = best.1;
     let mut contrast = 0.0;
     for _ in 0..3 {
@@ -88,8 +118,27 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
             return None;
         }
         let mid = 0.5 * (dark + bright);
-        // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge).
+        // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge). The
+        // bracket is first narrowed on the ¼ px samples already taken: the bisection's
+        // own first steps would read the same profile at about that spacing.
         let (mut lo, mut hi) = (e - d, e + d);
+        if let (Some((i0, _)), Some((i1, _))) = (on_grid(lo), on_grid(hi)) {
+            // The grid points strictly inside (lo, hi), in order: the last one below
+            // `mid` before the first one at or above it.
+            let (a, b) = (lo, hi);
+            for i in i0..=i1 {
+                let (s, v) = ((i - k as i64 - 2) as f64 * STEP, levels[i as usize]);
+                if s <= a || s >= b {
+                    continue;
+                }
+                if v < mid {
+                    lo = s;
+                } else {
+                    hi = s;
+                    break;
+                }
+            }
+        }
         while hi - lo > tol {
             let m = 0.5 * (lo + hi);
             if at(m)? < mid {
@@ -200,14 +249,9 @@ impl LeastSquares for StepProfile<'_> {
         let mut jtr = nalgebra::Vector4::<f64>::zeros();
         for (s, v) in self.0 {
             let z = (s - x[2]) / x[3];
-            let pdf = (-0.5 * z * z).exp() / (2.0 * std::f64::consts::PI).sqrt();
-            let r = x[0] + x[1] * normal_cdf(z) - v;
-            let j = nalgebra::Vector4::new(
-                1.0,
-                normal_cdf(z),
-                -x[1] * pdf / x[3],
-                -x[1] * pdf * z / x[3],
-            );
+            let (cdf, pdf) = normal_cdf_pdf(z);
+            let r = x[0] + x[1] * cdf - v;
+            let j = nalgebra::Vector4::new(1.0, cdf, -x[1] * pdf / x[3], -x[1] * pdf * z / x[3]);
             jtj += j * j.transpose();
             jtr += j * r;
         }
@@ -234,6 +278,13 @@ impl LeastSquares for StepProfile<'_> {
     /// The edge position moved less than 10⁻⁵ px.
     fn settled(&self, _: &nalgebra::Vector4<f64>, step: &nalgebra::Vector4<f64>) -> bool {
         step[2].abs() < 1e-5
+    }
+
+    /// A settling step at low damping is taken without evaluating the profile there
+    /// (an evaluation and a linearisation of every pixel saved per edge point): over
+    /// 10⁻⁵ px the cost is its quadratic model, and the fit ends with it anyway.
+    fn trusted(&self, step: &nalgebra::Vector4<f64>, lambda: f64) -> bool {
+        lambda < 1e-2 && step[2].abs() < 1e-5
     }
 }
 
@@ -406,11 +457,7 @@ fn refine_once(
         let mut pts = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = t0 + span * (i as f64 + 0.5) / samples as f64;
-            let q = a + (b - a) * t;
-            let p = lens.to_pixel(q)?;
-            let dt = 1e-3;
-            let p2 = lens.to_pixel(a + (b - a) * (t + dt))?;
-            let tangent = (p2 - p).normalize();
+            let (p, tangent) = lens.to_pixel_along(a + (b - a) * t, b - a)?;
             let n = Vec2::new(tangent.y, -tangent.x) * outward;
             // The pixel model needs the levels either side: ±2.5 px at least (below
             // that its four unknowns are poorly separated and the interpolated crossing
