@@ -50,7 +50,6 @@ impl Gray {
         if w < 3 || h < 3 {
             return 0.0;
         }
-        let at = |x: usize, y: usize| self.data[y * w + x];
         // Median of |response| from a histogram (bins of 1/4 grey level): O(n), where a
         // selection over the 480 000 responses of a 1600×1200 image took 4 ms.
         const BIN: f32 = 0.25;
@@ -58,12 +57,13 @@ impl Gray {
         let mut hist = vec![0u32; BINS + 1];
         let mut n = 0u32;
         for y in (1..h - 1).step_by(2) {
-            for x in (1..w - 1).step_by(2) {
-                let v = at(x - 1, y - 1) + at(x + 1, y - 1) + at(x - 1, y + 1) + at(x + 1, y + 1)
-                    - 2.0 * (at(x, y - 1) + at(x - 1, y) + at(x + 1, y) + at(x, y + 1))
-                    + 4.0 * at(x, y);
-                let b = ((v.abs() / BIN) as usize).min(BINS);
-                hist[b] += 1;
+            // The three rows as slices, walked by 3-pixel windows: no index arithmetic
+            // or bounds check per pixel.
+            let rows = |r: usize| self.data[r * w..(r + 1) * w].windows(3).step_by(2);
+            for ((a, b), c) in rows(y - 1).zip(rows(y)).zip(rows(y + 1)) {
+                let v = a[0] + a[2] + c[0] + c[2] - 2.0 * (a[1] + b[0] + b[2] + c[1]) + 4.0 * b[1];
+                let bin = ((v.abs() / BIN) as usize).min(BINS);
+                hist[bin] += 1;
                 n += 1;
             }
         }
