@@ -90,8 +90,10 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
         heap.resize(count, 0.0);
         &mut heap
     };
+    // Sample `i` is at s = (i − k − 2)·¼.
+    let s_of = |i: usize| (i as f64 - k as f64 - 2.0) * STEP;
     for (i, l) in levels.iter_mut().enumerate() {
-        *l = at((i as i32 - k - 2) as f64 * STEP)?;
+        *l = at(s_of(i))?;
     }
     let levels = &*levels;
     let mut best = (f64::NEG_INFINITY, 0.0);
@@ -104,10 +106,10 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
     if best.0 <= 0.0 {
         return None;
     }
-    // Profile value at grid index `i` (s = (i − k − 2)·¼), where sampled.
-    let on_grid = |s: f64| -> Option<(i64, f64)> {
+    // The sample at or below `s`, where sampled.
+    let index_of = |s: f64| -> Option<usize> {
         let i = (s / STEP).floor() as i64 + k as i64 + 2;
-        (i >= 0 && (i as usize) < levels.len()).then(|| (i, levels[i as usize]))
+        usize::try_from(i).ok().filter(|&i| i < levels.len())
     };
     let mut e = best.1;
     let mut contrast = 0.0;
@@ -122,12 +124,12 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
         // bracket is first narrowed on the ¼ px samples already taken: the bisection's
         // own first steps would read the same profile at about that spacing.
         let (mut lo, mut hi) = (e - d, e + d);
-        if let (Some((i0, _)), Some((i1, _))) = (on_grid(lo), on_grid(hi)) {
-            // The grid points strictly inside (lo, hi), in order: the last one below
-            // `mid` before the first one at or above it.
+        if let (Some(i0), Some(i1)) = (index_of(lo), index_of(hi)) {
+            // The samples strictly inside (lo, hi), in order: the last one below `mid`
+            // before the first one at or above it.
             let (a, b) = (lo, hi);
             for i in i0..=i1 {
-                let (s, v) = ((i - k as i64 - 2) as f64 * STEP, levels[i as usize]);
+                let (s, v) = (s_of(i), levels[i]);
                 if s <= a || s >= b {
                     continue;
                 }
@@ -284,7 +286,7 @@ impl LeastSquares for StepProfile<'_> {
     /// (an evaluation and a linearisation of every pixel saved per edge point): over
     /// 10⁻⁵ px the cost is its quadratic model, and the fit ends with it anyway.
     fn trusted(&self, step: &nalgebra::Vector4<f64>, lambda: f64) -> bool {
-        lambda < 1e-2 && step[2].abs() < 1e-5
+        lambda < 1e-2 && self.settled(step, step)
     }
 }
 
