@@ -15,13 +15,15 @@
 use super::lm::{self, Damping, LeastSquares, NormalEquations, Rules, Termination};
 use super::loss::Loss;
 use faer::linalg::matmul::triangular::{self, BlockStructure};
-use faer::prelude::Solve;
 use faer::Accum;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix6, SMatrix, Vector6};
 use rayon::prelude::*;
 use rigcal_core::geometry::so3::skew;
 use rigcal_core::geometry::{Camera, Mat3, Pose, Vec2, Vec3};
 use rigcal_core::linalg::symmetric_pseudo_inverse;
+use std::cell::RefCell;
+use std::collections::HashMap;
+use std::hash::{BuildHasherDefault, Hasher};
 use std::time::Instant;
 
 type J26 = SMatrix<f64, 2, 6>;
@@ -151,6 +153,53 @@ struct Layout {
     obs_pairs: Vec<[u32; 6]>,
 }
 
+impl Layout {
+    /// Nothing to solve (the equations a dropped linearisation leaves behind).
+    const EMPTY: Layout = Layout {
+        rig: Vec::new(),
+        cam: Vec::new(),
+        point: Vec::new(),
+        body: Vec::new(),
+        n_reduced: 0,
+        elim_size: Vec::new(),
+        couplings: Vec::new(),
+        obs_coupling: Vec::new(),
+        elim_order: Vec::new(),
+        elim_start: Vec::new(),
+        pairs: Vec::new(),
+        obs_pairs: Vec::new(),
+    };
+}
+
+/// A hash map keyed by parameter offsets. The standard library's SipHash (resistant to
+/// chosen keys, which these are not) was most of the layout's time at K = 200 rig poses.
+type OffsetMap<K, V> = HashMap<K, V, BuildHasherDefault<OffsetHasher>>;
+
+/// A multiplicative hash of integers (FxHash's, with rustc-hash 2's final rotation so
+/// that the bucket bits depend on every bit of keys that are multiples of 3 or 6).
+#[derive(Default)]
+struct OffsetHasher(u64);
+
+impl Hasher for OffsetHasher {
+    fn write(&mut self, bytes: &[u8]) {
+        for &b in bytes {
+            self.write_u64(b as u64);
+        }
+    }
+
+    fn write_u64(&mut self, n: u64) {
+        self.0 = (self.0 ^ n).wrapping_mul(0xf135_7aea_2e62_a9c5);
+    }
+
+    fn write_usize(&mut self, n: usize) {
+        self.write_u64(n as u64);
+    }
+
+    fn finish(&self) -> u64 {
+        self.0.rotate_left(26)
+    }
+}
+
 /// One residual's Jacobian blocks: slot, size, and the 2×6 (zero-padded) matrix.
 type Blocks = [(Slot, usize, J26); 4];
 
@@ -160,12 +209,67 @@ struct Normal {
     gr: DVector<f64>,
     hee: Vec<Matrix6<f64>>,
     ge: Vec<Vector6<f64>>,
-    /// Per eliminated block, per coupling: H_{E,R} (rows: E, cols: R), zero-padded.
-    her: Vec<Vec<Matrix6<f64>>>,
+    /// Per eliminated block: H_{E,R} with each block it couples with.
+    her: Vec<Couplings>,
     cost: f64,
 }
 
+/// The coupling blocks `H_{E,R}` of one eliminated block of size `ze` (their rows) with
+/// each reduced block it couples with: `ze × 6` each, column-major (the columns beyond a
+/// reduced block's size stay zero). A point's take 18 numbers, where a padded 6×6 would
+/// take 36: at K = 200 rig poses these are the largest part of the normal equations.
+struct Couplings {
+    ze: usize,
+    data: Vec<f64>,
+}
+
+impl Couplings {
+    fn zeros(ze: usize, count: usize) -> Self {
+        Self {
+            ze,
+            data: vec![0.0; count * ze * 6],
+        }
+    }
+
+    /// Coupling `c`, `ze × 6` column-major.
+    #[cfg(test)]
+    fn block(&self, c: usize) -> &[f64] {
+        &self.data[c * self.ze * 6..(c + 1) * self.ze * 6]
+    }
+
+    fn block_mut(&mut self, c: usize) -> &mut [f64] {
+        &mut self.data[c * self.ze * 6..(c + 1) * self.ze * 6]
+    }
+
+    /// The blocks with their coupled reduced blocks `(offset, size)`.
+    fn iter<'a>(
+        &'a self,
+        couplings: &'a [(usize, usize)],
+    ) -> impl Iterator<Item = (&'a [f64], (usize, usize))> + 'a {
+        self.data.chunks_exact(self.ze * 6).zip(couplings.iter().copied())
+    }
+}
+
 impl Normal {
+    /// Zero normal equations of `layout`: `spare` (equations of the same layout, from an
+    /// earlier linearisation) cleared, or new ones.
+    fn zeroed(layout: &Layout, spare: Option<Normal>) -> Normal {
+        match spare {
+            Some(mut n) if n.hee.len() == layout.elim_size.len() && n.gr.len() == layout.n_reduced => {
+                n.hrr.fill(0.0);
+                n.gr.fill(0.0);
+                n.hee.fill(Matrix6::zeros());
+                n.ge.fill(Vector6::zeros());
+                for h in &mut n.her {
+                    h.data.fill(0.0);
+                }
+                n.cost = 0.0;
+                n
+            }
+            _ => Normal::zeros(layout),
+        }
+    }
+
     fn zeros(layout: &Layout) -> Normal {
         let nr = layout.n_reduced;
         let ne = layout.elim_size.len();
@@ -177,7 +281,8 @@ impl Normal {
             her: layout
                 .couplings
                 .iter()
-                .map(|c| vec![Matrix6::zeros(); c.len()])
+                .zip(&layout.elim_size)
+                .map(|(c, &ze)| Couplings::zeros(ze, c.len()))
                 .collect(),
             cost: 0.0,
         }
@@ -206,14 +311,17 @@ struct Sink<'a> {
     gr: &'a mut DVector<f64>,
     hee: &'a mut [Matrix6<f64>],
     ge: &'a mut [Vector6<f64>],
-    her: &'a mut [Vec<Matrix6<f64>>],
+    her: &'a mut [Couplings],
     first_elim: usize,
 }
 
 /// Observations per part of the normal equations at least (fewer are not worth a
 /// thread), and parts at most.
-const MIN_PART_OBSERVATIONS: usize = 8192;
+const MIN_PART_OBSERVATIONS: usize = 4096;
 const MAX_PARTS: usize = 4;
+
+/// Observations per chunk of the cost's sum over the cores.
+const COST_CHUNK: usize = 4096;
 
 /// The index in an observation's pair list (`Layout::obs_pairs`) of the pair of its
 /// block positions `a ≤ b` (rig 0, camera 1, point 2).
@@ -258,6 +366,7 @@ impl BundleProblem {
     }
 
     /// Residual and the Jacobians w.r.t. rig pose, extrinsic and world point.
+    #[inline(always)]
     fn linearize_obs(&self, o: &Obs) -> Option<(Vec2, J26, J26, Matrix2x3<f64>)> {
         let x = self.point_world(&o.point);
         let rig = &self.world_from_rig[o.rig];
@@ -386,11 +495,11 @@ impl BundleProblem {
             pairs: Vec::new(),
             obs_pairs: Vec::new(),
         };
-        let mut pair_index: std::collections::HashMap<(usize, usize), u32> = Default::default();
+        let mut pair_index: OffsetMap<(usize, usize), u32> = Default::default();
         let mut obs_elim = Vec::with_capacity(self.observations.len());
         // Coupling structure: for each observation's eliminated block, the index in its
         // coupling list of each of the observation's reduced blocks (rig, camera, point).
-        let mut index: Vec<std::collections::HashMap<usize, usize>> =
+        let mut index: Vec<OffsetMap<usize, usize>> =
             vec![Default::default(); layout.elim_size.len()];
         for o in &self.observations {
             let (pslot, psize) = match o.point {
@@ -464,12 +573,25 @@ impl BundleProblem {
 
     /// Robust cost `½ Σ ρ(|r|²) + ½ Σ r_d²`; infinite if any point falls behind its camera.
     pub fn cost(&self, loss: &Loss) -> f64 {
-        let mut c = 0.0;
-        for o in &self.observations {
-            match self.residual(o) {
-                Some(r) => c += loss.rho(r.norm_squared()),
-                None => return f64::INFINITY,
-            }
+        // Over the cores in fixed chunks summed in order, so that the value does not
+        // depend on the number of threads.
+        let chunks: Vec<f64> = self
+            .observations
+            .par_chunks(COST_CHUNK)
+            .map(|chunk| {
+                let mut c = 0.0;
+                for o in chunk {
+                    match self.residual(o) {
+                        Some(r) => c += loss.rho(r.norm_squared()),
+                        None => return f64::INFINITY,
+                    }
+                }
+                c
+            })
+            .collect();
+        let mut c: f64 = chunks.iter().sum();
+        if !c.is_finite() {
+            return f64::INFINITY;
         }
         for d in &self.distances {
             c += self.distance_residual(d).powi(2);
@@ -482,7 +604,40 @@ impl BundleProblem {
 
     /// Accumulate the observations `obs` (indices) into `sink`; their cost, or `None`
     /// when a point is behind its camera.
+    ///
+    /// The hot loop of the normal equations, compiled a second time for AVX2 and chosen
+    /// at run time: the release build targets baseline x86-64 (SSE2), and the blocks'
+    /// products run twice as wide with AVX2. Without FMA the arithmetic, and so the
+    /// result, is the same on either path.
     fn observation_normal(
+        &self,
+        layout: &Layout,
+        loss: &Loss,
+        obs: &[usize],
+        sink: &mut Sink,
+    ) -> Option<f64> {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("avx2") {
+            // SAFETY: the CPU has AVX2 (checked just above).
+            return unsafe { self.observation_normal_avx2(layout, loss, obs, sink) };
+        }
+        self.observation_normal_portable(layout, loss, obs, sink)
+    }
+
+    #[cfg(target_arch = "x86_64")]
+    #[target_feature(enable = "avx2")]
+    unsafe fn observation_normal_avx2(
+        &self,
+        layout: &Layout,
+        loss: &Loss,
+        obs: &[usize],
+        sink: &mut Sink,
+    ) -> Option<f64> {
+        self.observation_normal_portable(layout, loss, obs, sink)
+    }
+
+    #[inline(always)]
+    fn observation_normal_portable(
         &self,
         layout: &Layout,
         loss: &Loss,
@@ -516,9 +671,11 @@ impl BundleProblem {
         Some(cost)
     }
 
-    fn normal_equations(&self, layout: &Layout, loss: &Loss) -> Option<Normal> {
+    /// The normal equations at this state, written into `spare` when given (equations
+    /// of the same layout, reused: see [`Workspace`]).
+    fn normal_equations(&self, layout: &Layout, loss: &Loss, spare: Option<Normal>) -> Option<Normal> {
         let parts = (self.observations.len() / MIN_PART_OBSERVATIONS).clamp(1, MAX_PARTS);
-        self.normal_equations_in_parts(layout, loss, parts)
+        self.normal_equations_in_parts(layout, loss, parts, spare)
     }
 
     fn normal_equations_in_parts(
@@ -526,8 +683,9 @@ impl BundleProblem {
         layout: &Layout,
         loss: &Loss,
         parts: usize,
+        spare: Option<Normal>,
     ) -> Option<Normal> {
-        let mut n = Normal::zeros(layout);
+        let mut n = Normal::zeroed(layout, spare);
         // The observations in parts over the cores, a part per run of eliminated blocks
         // (their rows are the part's alone), each with its own reduced rows, summed in
         // a fixed order (so the result does not depend on the number of cores). A part
@@ -643,6 +801,7 @@ impl BundleProblem {
         Some(n)
     }
 
+    #[inline(always)]
     fn accumulate(
         n: &mut Sink,
         blocks: &Blocks,
@@ -652,47 +811,60 @@ impl BundleProblem {
         pairs: Option<&[u32; 6]>,
     ) {
         for (a, &(sa, za, ja)) in blocks.iter().enumerate() {
-            if za == 0 {
+            if za == 0 || sa == Slot::Fixed {
                 continue;
             }
-            let jta = ja.transpose() * w;
-            let ga = jta * r;
+            // Every product below is `(w·Jₐ)ᵀ J_b`, at the blocks' real sizes.
+            let wa = ja * w;
             match sa {
                 Slot::Fixed => continue,
                 Slot::Reduced(oa) => {
                     for k in 0..za {
-                        n.gr[oa + k] += ga[k];
+                        n.gr[oa + k] += wa[(0, k)] * r.x + wa[(1, k)] * r.y;
                     }
                 }
-                Slot::Elim(e) => n.ge[e - n.first_elim] += ga,
+                Slot::Elim(e) => {
+                    let ge = &mut n.ge[e - n.first_elim];
+                    for k in 0..za {
+                        ge[k] += wa[(0, k)] * r.x + wa[(1, k)] * r.y;
+                    }
+                }
             }
             for (b, &(sb, zb, jb)) in blocks.iter().enumerate().skip(a) {
                 if zb == 0 || sb == Slot::Fixed {
                     continue;
                 }
-                let h = jta * jb;
                 match (sa, sb) {
                     (Slot::Reduced(_), Slot::Reduced(_)) if pairs.is_some() => {
                         if let Some(&idx) = pairs.and_then(|p| p.get(PAIR_INDEX[a][b])) {
-                            n.pair[idx as usize] += h;
+                            let h = n.pair[idx as usize].as_mut_slice();
+                            add_jtj((h, 6), (&wa, za), (&jb, zb));
                         }
                     }
                     (Slot::Reduced(oa), Slot::Reduced(ob)) => {
                         if let Some(hrr) = n.hrr.as_deref_mut() {
+                            let mut h = Matrix6::zeros();
+                            add_jtj((h.as_mut_slice(), 6), (&wa, za), (&jb, zb));
                             add_symmetric_block(hrr, (oa, za), (ob, zb), &h);
                         }
                     }
-                    (Slot::Elim(e), Slot::Elim(f)) if e == f => n.hee[e - n.first_elim] += h,
-                    (Slot::Reduced(_), Slot::Elim(e)) | (Slot::Elim(e), Slot::Reduced(_)) => {
-                        // The coupling index was precomputed per position of the reduced
-                        // block in the observation (rig 0, camera 1, point 2).
-                        let (hr, which) = if matches!(sa, Slot::Elim(_)) {
-                            (h, b)
-                        } else {
-                            (h.transpose(), a)
-                        };
-                        if let Some(Some(c)) = coupling.map(|c| c[which]) {
-                            n.her[e - n.first_elim][c] += hr;
+                    (Slot::Elim(e), Slot::Elim(f)) if e == f => {
+                        let h = n.hee[e - n.first_elim].as_mut_slice();
+                        add_jtj((h, 6), (&wa, za), (&jb, zb));
+                    }
+                    // H_{E,R}, rows of the eliminated block; the coupling index was
+                    // precomputed per position of the reduced block in the observation
+                    // (rig 0, camera 1, point 2).
+                    (Slot::Elim(e), Slot::Reduced(_)) => {
+                        if let Some(Some(c)) = coupling.map(|c| c[b]) {
+                            let h = n.her[e - n.first_elim].block_mut(c);
+                            add_jtj((h, za), (&wa, za), (&jb, zb));
+                        }
+                    }
+                    (Slot::Reduced(_), Slot::Elim(e)) => {
+                        if let Some(Some(c)) = coupling.map(|c| c[a]) {
+                            let h = n.her[e - n.first_elim].block_mut(c);
+                            add_jtj((h, zb), (&jb, zb), (&wa, za));
                         }
                     }
                     _ => {}
@@ -762,10 +934,12 @@ impl BundleProblem {
             // flat direction at the limit is converged, not failed.
             creep_tolerance: 1e-6,
         };
+        let workspace = RefCell::new(Workspace::default());
         let mut problem = RigFit {
             layout: &layout,
             loss: opts.loss,
             parameter_tolerance: opts.parameter_tolerance,
+            workspace: &workspace,
         };
         let mut summary = BundleSummary {
             iterations: 0,
@@ -849,24 +1023,16 @@ impl BundleProblem {
     /// columns follow the free cameras in index order, `[dt, dφ]` each.
     pub fn extrinsic_information(&self, loss: &Loss) -> Option<(Vec<usize>, DMatrix<f64>)> {
         let layout = self.layout();
-        let n = self.normal_equations(&layout, loss)?;
+        let n = self.normal_equations(&layout, loss, None)?;
         // Schur complement of the eliminated blocks (undamped, pseudo-inverse if singular).
         let mut s = n.hrr.clone();
-        let mut dense = DenseRows::new(layout.n_reduced);
-        for (e, hee) in n.hee.iter().enumerate() {
-            let inv = pseudo_inverse_block(hee, layout.elim_size[e]);
-            eliminate_block(
-                &mut s,
-                &mut dense,
-                None,
-                &layout.couplings[e],
-                &n.her[e],
-                &inv,
-                &n.ge[e],
-                layout.elim_size[e],
-            );
-        }
-        dense.flush(&mut s);
+        let inv: Vec<Matrix6<f64>> = n
+            .hee
+            .par_iter()
+            .zip(&layout.elim_size)
+            .map(|(hee, &size)| pseudo_inverse_block(hee, size))
+            .collect();
+        schur_complement(&mut s, None, &layout, &n, &inv, &mut Vec::new());
         mirror_lower(&mut s);
         let cams: Vec<usize> = (0..self.rig_from_cam.len())
             .filter(|&c| matches!(layout.cam[c], Slot::Reduced(_)))
@@ -909,55 +1075,6 @@ impl BundleProblem {
     }
 }
 
-/// Rows `B` of pending rank-k updates `S −= BᵀB`, applied by one matrix product per
-/// batch: the cache-friendly way to eliminate blocks coupled with most of `S`.
-struct DenseRows {
-    buf: DMatrix<f64>,
-    count: usize,
-}
-
-impl DenseRows {
-    const BATCH: usize = 512;
-
-    fn new(n: usize) -> Self {
-        Self {
-            buf: DMatrix::zeros(if n > 0 { Self::BATCH } else { 0 }, n),
-            count: 0,
-        }
-    }
-
-    /// Apply the pending updates to the lower triangle of `s` (the upper one is left
-    /// as it was: [`solve_lower`] reads the lower one, [`mirror_lower`] completes it),
-    /// over the cores: a symmetric rank update costs half a product, and at K = 200
-    /// rig poses it was 44 % of the bundle's instructions.
-    fn flush(&mut self, s: &mut DMatrix<f64>) {
-        if self.count > 0 {
-            let n = s.ncols();
-            let rows = self.buf.nrows();
-            let b = faer::MatRef::from_column_major_slice_with_stride(
-                self.buf.as_slice(),
-                self.count,
-                n,
-                rows,
-            );
-            let dst = faer::MatMut::from_column_major_slice_mut(s.as_mut_slice(), n, n);
-            triangular::matmul(
-                dst,
-                BlockStructure::TriangularLower,
-                Accum::Add,
-                b.transpose(),
-                BlockStructure::Rectangular,
-                b,
-                BlockStructure::Rectangular,
-                -1.0,
-                faer::get_global_parallelism(),
-            );
-            self.buf.rows_mut(0, self.count).fill(0.0);
-            self.count = 0;
-        }
-    }
-}
-
 /// Add the block `h` (rows: the `za` parameters at `oa`, columns: the `zb` at `ob`) to
 /// the symmetric matrix `hrr`, and its transpose unless it is a diagonal block.
 fn add_symmetric_block(
@@ -976,6 +1093,43 @@ fn add_symmetric_block(
     }
 }
 
+/// `dst += Aᵀ B` for the `za × zb` block of two residual-row Jacobian blocks (2 rows,
+/// zero-padded to 6 columns) into column-major `dst` of leading dimension `ld`: only the
+/// blocks' real sizes are computed, a point's being 3 wide. Sizes are 3 or 6; the match
+/// gives the compiler fixed loop bounds.
+#[inline(always)]
+fn add_jtj((dst, ld): (&mut [f64], usize), (a, za): (&J26, usize), (b, zb): (&J26, usize)) {
+    #[inline(always)]
+    fn fixed<const ZA: usize, const ZB: usize>(d: &mut [f64], ld: usize, a: &J26, b: &J26) {
+        // A Jacobian's (r, i) is at 2i + r; the rows of `a` copied out contiguous so that
+        // the inner loop vectorises.
+        let (a, b) = (a.as_slice(), b.as_slice());
+        let a0: [f64; 6] = std::array::from_fn(|i| a[2 * i]);
+        let a1: [f64; 6] = std::array::from_fn(|i| a[2 * i + 1]);
+        for j in 0..ZB {
+            let (b0, b1) = (b[2 * j], b[2 * j + 1]);
+            let col = &mut d[ld * j..ld * j + ZA];
+            for i in 0..ZA {
+                col[i] += a0[i] * b0 + a1[i] * b1;
+            }
+        }
+    }
+    match (za, zb) {
+        (6, 6) => fixed::<6, 6>(dst, ld, a, b),
+        (6, 3) => fixed::<6, 3>(dst, ld, a, b),
+        (3, 6) => fixed::<3, 6>(dst, ld, a, b),
+        (3, 3) => fixed::<3, 3>(dst, ld, a, b),
+        _ => {
+            let (a, b) = (a.as_slice(), b.as_slice());
+            for j in 0..zb {
+                for i in 0..za {
+                    dst[ld * j + i] += a[2 * i] * b[2 * j] + a[2 * i + 1] * b[2 * j + 1];
+                }
+            }
+        }
+    }
+}
+
 /// Copy the lower triangle of a square matrix onto its upper one.
 fn mirror_lower(s: &mut DMatrix<f64>) {
     for j in 0..s.ncols() {
@@ -986,16 +1140,32 @@ fn mirror_lower(s: &mut DMatrix<f64>) {
 }
 
 /// Solve `S x = b` for a symmetric positive definite `S` of which only the lower
-/// triangle is read: faer's blocked Cholesky over the cores (nalgebra's is unblocked,
-/// 30 % of the bundle's instructions at K = 200). `None` when `S` is not positive
-/// definite.
-fn solve_lower(s: &DMatrix<f64>, b: &DVector<f64>) -> Option<DVector<f64>> {
+/// triangle is read, factored in place (its lower triangle is overwritten): faer's
+/// blocked Cholesky over the cores (nalgebra's is unblocked, 30 % of the bundle's
+/// instructions at K = 200). `None` when `S` is not positive definite.
+fn solve_lower(s: &mut DMatrix<f64>, b: DVector<f64>) -> Option<DVector<f64>> {
+    use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
+    use faer::linalg::cholesky::llt;
+    use faer::reborrow::{Reborrow, ReborrowMut};
     let n = s.nrows();
-    let sf = faer::MatRef::from_column_major_slice(s.as_slice(), n, n);
-    let llt = sf.llt(faer::Side::Lower).ok()?;
-    let mut x = faer::Mat::from_fn(n, 1, |i, _| b[i]);
-    llt.solve_in_place(x.as_mut());
-    let x = DVector::from_fn(n, |i, _| x[(i, 0)]);
+    let par = faer::get_global_parallelism();
+    let mut l = faer::MatMut::from_column_major_slice_mut(s.as_mut_slice(), n, n);
+    let mut mem = MemBuffer::new(llt::factor::cholesky_in_place_scratch::<f64>(
+        n,
+        par,
+        Default::default(),
+    ));
+    llt::factor::cholesky_in_place(
+        l.rb_mut(),
+        Default::default(),
+        par,
+        MemStack::new(&mut mem),
+        Default::default(),
+    )
+    .ok()?;
+    let mut x = b;
+    let rhs = faer::MatMut::from_column_major_slice_mut(x.as_mut_slice(), n, 1);
+    llt::solve::solve_in_place(l.rb(), rhs, par, MemStack::new(&mut MemBuffer::new(StackReq::EMPTY)));
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
@@ -1007,6 +1177,21 @@ struct RigFit<'a> {
     layout: &'a Layout,
     loss: Loss,
     parameter_tolerance: f64,
+    workspace: &'a RefCell<Workspace>,
+}
+
+/// The large buffers of one rig bundle solve, kept across its linearisations and damped
+/// solves: allocated afresh each time (K = 200: 35 MB of coupling blocks per
+/// linearisation, 12 MB per reduced matrix) they cost more in page faults than the
+/// arithmetic that fills them.
+#[derive(Default)]
+struct Workspace {
+    /// Normal equations of linearisations the driver has let go of.
+    normals: Vec<Normal>,
+    /// The reduced matrix, factored in place.
+    reduced: Option<DMatrix<f64>>,
+    /// The dense rows of the Schur complement ([`DenseRows`]), all zero between uses.
+    rows: Vec<f64>,
 }
 
 impl<'a> LeastSquares for RigFit<'a> {
@@ -1014,10 +1199,12 @@ impl<'a> LeastSquares for RigFit<'a> {
     type Normal = Reduced<'a>;
 
     fn linearize(&mut self, x: &BundleProblem) -> Option<Reduced<'a>> {
-        let normal = x.normal_equations(self.layout, &self.loss)?;
+        let spare = self.workspace.borrow_mut().normals.pop();
+        let normal = x.normal_equations(self.layout, &self.loss, spare)?;
         Some(Reduced {
             layout: self.layout,
             normal,
+            workspace: Some(self.workspace),
         })
     }
 
@@ -1041,6 +1228,17 @@ impl<'a> LeastSquares for RigFit<'a> {
 struct Reduced<'a> {
     layout: &'a Layout,
     normal: Normal,
+    /// Where the buffers go back when these equations are done with.
+    workspace: Option<&'a RefCell<Workspace>>,
+}
+
+impl Drop for Reduced<'_> {
+    fn drop(&mut self) {
+        if let Some(w) = self.workspace {
+            let n = std::mem::replace(&mut self.normal, Normal::zeros(&Layout::EMPTY));
+            w.borrow_mut().normals.push(n);
+        }
+    }
 }
 
 impl NormalEquations for Reduced<'_> {
@@ -1061,47 +1259,49 @@ impl NormalEquations for Reduced<'_> {
     fn solve_damped(&self, lambda: f64, floor: f64) -> Option<RigStep> {
         let (layout, n) = (self.layout, &self.normal);
         let nr = layout.n_reduced;
-        let mut s = n.hrr.clone();
+        let mut own = Workspace::default();
+        let mut shared = self.workspace.map(|w| w.borrow_mut());
+        let work = shared.as_deref_mut().unwrap_or(&mut own);
+        let mut s = match work.reduced.take() {
+            Some(mut s) if s.nrows() == nr => {
+                s.copy_from(&n.hrr);
+                s
+            }
+            _ => n.hrr.clone(),
+        };
         for i in 0..nr {
             s[(i, i)] += lambda * n.hrr[(i, i)].max(floor);
         }
         let mut rhs = -n.gr.clone();
-        let mut einv = Vec::with_capacity(n.hee.len());
-        let mut dense = DenseRows::new(nr);
-        for (e, hee) in n.hee.iter().enumerate() {
-            let size = layout.elim_size[e];
-            let mut h = *hee;
-            for i in 0..size {
-                h[(i, i)] += lambda * hee[(i, i)].max(floor);
-            }
-            let inv = invert_block(&h, size)?;
-            eliminate_block(
-                &mut s,
-                &mut dense,
-                Some(&mut rhs),
-                &layout.couplings[e],
-                &n.her[e],
-                &inv,
-                &n.ge[e],
-                size,
-            );
-            einv.push(inv);
-        }
-        dense.flush(&mut s);
+        let einv: Vec<Matrix6<f64>> = n
+            .hee
+            .par_iter()
+            .zip(&layout.elim_size)
+            .map(|(hee, &size)| {
+                let mut h = *hee;
+                for i in 0..size {
+                    h[(i, i)] += lambda * hee[(i, i)].max(floor);
+                }
+                invert_block(&h, size)
+            })
+            .collect::<Option<_>>()?;
+        schur_complement(&mut s, Some(&mut rhs), layout, n, &einv, &mut work.rows);
         let dr = if nr > 0 {
-            solve_lower(&s, &rhs)?
+            solve_lower(&mut s, rhs)
         } else {
-            DVector::zeros(0)
+            Some(DVector::zeros(0))
         };
+        work.reduced = Some(s);
+        let dr = dr?;
         let mut de = Vec::with_capacity(n.hee.len());
         for (e, inv) in einv.iter().enumerate() {
             let mut b = -n.ge[e];
-            for (ca, &(oa, za)) in layout.couplings[e].iter().enumerate() {
-                let mut x = Vector6::zeros();
-                for k in 0..za {
-                    x[k] = dr[oa + k];
+            let ze = layout.elim_size[e];
+            for (h, (oa, za)) in n.her[e].iter(&layout.couplings[e]) {
+                for k in 0..ze {
+                    let v: f64 = (0..za).map(|j| h[j * ze + k] * dr[oa + j]).sum();
+                    b[k] -= v;
                 }
-                b -= n.her[e][ca] * x;
             }
             de.push(inv * b);
         }
@@ -1127,73 +1327,159 @@ impl NormalEquations for Reduced<'_> {
     }
 }
 
-/// Schur elimination of one eliminated block of size `ze` with inverse `inv`:
-/// `S_ab −= H_aᵀ E⁻¹ H_b` for every pair of its couplings, and `rhs_a += H_aᵀ E⁻¹ g`.
-///
-/// A block coupled with a large part of `S` (a rig pose seeing every point) becomes
-/// `ze` dense rows `B = Mᵀ A` with `M Mᵀ = E⁻¹`, batched into a matrix product; a block
-/// with few couplings (a point seen in a few frames) is applied pair by pair.
-#[allow(clippy::too_many_arguments)]
-fn eliminate_block(
-    s: &mut DMatrix<f64>,
-    dense: &mut DenseRows,
-    rhs: Option<&mut DVector<f64>>,
-    couplings: &[(usize, usize)],
-    her: &[Matrix6<f64>],
-    inv: &Matrix6<f64>,
-    g: &Vector6<f64>,
-    ze: usize,
-) {
-    if let Some(rhs) = rhs {
-        let ig = inv * g;
-        for (h, &(oa, za)) in her.iter().zip(couplings) {
-            for i in 0..za {
-                rhs[oa + i] += (0..ze).map(|k| h[(k, i)] * ig[k]).sum::<f64>();
-            }
+/// Rows `B` of pending rank-k updates `S −= BᵀB`, applied by one matrix product per
+/// batch: the cache-friendly way to eliminate blocks coupled with most of `S`. Stored
+/// transposed (a row of `B` is a contiguous column of `buf`), so that filling a row
+/// writes one run of memory and rows fill in parallel.
+struct DenseRows<'b> {
+    /// `n × BATCH`, column-major; zero beyond the pending rows.
+    buf: &'b mut [f64],
+    n: usize,
+    count: usize,
+}
+
+impl<'b> DenseRows<'b> {
+    const BATCH: usize = 512;
+
+    /// Rows of length `n` in `buf`, grown (with zeros) to hold a batch.
+    fn new(n: usize, buf: &'b mut Vec<f64>) -> Self {
+        if buf.len() < n * Self::BATCH {
+            buf.resize(n * Self::BATCH, 0.0);
+        }
+        Self {
+            buf: &mut buf[..n * Self::BATCH],
+            n,
+            count: 0,
         }
     }
-    let coupled: usize = couplings.iter().map(|c| c.1).sum();
-    if coupled == 0 {
-        // Nothing in the reduced system depends on this block (e.g. a scene whose only
-        // free parameters are eliminated ones): no update, and no dense row to batch.
-        return;
+
+    /// Apply the pending updates to the lower triangle of `s` (the upper one is left
+    /// as it was: [`solve_lower`] reads the lower one, [`mirror_lower`] completes it),
+    /// over the cores: a symmetric rank update costs half a product, and at K = 200
+    /// rig poses it was 44 % of the bundle's instructions.
+    fn flush(&mut self, s: &mut DMatrix<f64>) {
+        if self.count > 0 {
+            let n = self.n;
+            let bt = faer::MatRef::from_column_major_slice(&self.buf[..n * self.count], n, self.count);
+            let dst = faer::MatMut::from_column_major_slice_mut(s.as_mut_slice(), n, n);
+            triangular::matmul(
+                dst,
+                BlockStructure::TriangularLower,
+                Accum::Add,
+                bt,
+                BlockStructure::Rectangular,
+                bt.transpose(),
+                BlockStructure::Rectangular,
+                -1.0,
+                faer::get_global_parallelism(),
+            );
+            self.buf[..n * self.count].fill(0.0);
+            self.count = 0;
+        }
     }
-    if coupled * 8 >= s.nrows() {
-        // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse).
-        let sub = DMatrix::from_fn(ze, ze, |i, j| inv[(i, j)]);
-        let eig = rigcal_core::linalg::symmetric_eigen(&sub);
-        for r in 0..ze {
-            let l = eig.eigenvalues[r];
-            if l <= 0.0 {
-                continue;
-            }
-            let m: Vec<f64> = (0..ze)
-                .map(|k| eig.eigenvectors[(k, r)] * l.sqrt())
-                .collect();
-            let row = dense.count;
-            for (h, &(oa, za)) in her.iter().zip(couplings) {
-                for j in 0..za {
-                    dense.buf[(row, oa + j)] = (0..ze).map(|k| m[k] * h[(k, j)]).sum::<f64>();
+}
+
+/// The Schur complement of every eliminated block `e` (inverse `inv[e]`) on the
+/// reduced matrix `s` (lower triangle) and, given, the right-hand side:
+/// `S_ab −= H_aᵀ E⁻¹ H_b` for every pair of its couplings, `rhs_a += H_aᵀ E⁻¹ g`.
+///
+/// A block coupled with a large part of `S` (a point seen from every rig pose) becomes
+/// `ze` dense rows `B = Mᵀ H` with `M Mᵀ = E⁻¹`, batched into matrix products and
+/// filled over the cores; a block with few couplings (a point seen in a few frames) is
+/// applied pair by pair.
+fn schur_complement(
+    s: &mut DMatrix<f64>,
+    mut rhs: Option<&mut DVector<f64>>,
+    layout: &Layout,
+    n: &Normal,
+    inv: &[Matrix6<f64>],
+    rows_buf: &mut Vec<f64>,
+) {
+    let nr = s.nrows();
+    let mut dense_blocks = Vec::new();
+    for (e, inv) in inv.iter().enumerate() {
+        let (couplings, her, ze) = (&layout.couplings[e], &n.her[e], layout.elim_size[e]);
+        if let Some(rhs) = rhs.as_deref_mut() {
+            let ig = inv * n.ge[e];
+            for (h, (oa, za)) in her.iter(couplings) {
+                for i in 0..za {
+                    rhs[oa + i] += (0..ze).map(|k| h[i * ze + k] * ig[k]).sum::<f64>();
                 }
             }
-            dense.count += 1;
-            if dense.count == DenseRows::BATCH {
-                dense.flush(s);
-            }
         }
+        let coupled: usize = couplings.iter().map(|c| c.1).sum();
+        if coupled == 0 {
+            // Nothing in the reduced system depends on this block (e.g. a scene whose
+            // only free parameters are eliminated ones): no update, and no dense row.
+        } else if coupled * 8 >= nr {
+            dense_blocks.push(e);
+        } else {
+            eliminate_pairwise(s, couplings, her, inv, ze);
+        }
+    }
+    if dense_blocks.is_empty() {
         return;
     }
+    // M with M Mᵀ = E⁻¹ from the eigen-decomposition (E⁻¹ may be a pseudo-inverse):
+    // one dense row per positive eigenvalue.
+    let rows: Vec<(usize, Vector6<f64>)> = dense_blocks
+        .par_iter()
+        .map(|&e| {
+            let ze = layout.elim_size[e];
+            let sub = DMatrix::from_fn(ze, ze, |i, j| inv[e][(i, j)]);
+            let eig = rigcal_core::linalg::symmetric_eigen(&sub);
+            (0..ze)
+                .filter(|&r| eig.eigenvalues[r] > 0.0)
+                .map(|r| {
+                    let l = eig.eigenvalues[r].sqrt();
+                    let mut m = Vector6::zeros();
+                    for k in 0..ze {
+                        m[k] = eig.eigenvectors[(k, r)] * l;
+                    }
+                    (e, m)
+                })
+                .collect::<Vec<_>>()
+        })
+        .flatten()
+        .collect();
+    let mut dense = DenseRows::new(nr, rows_buf);
+    for batch in rows.chunks(DenseRows::BATCH) {
+        dense
+            .buf
+            .par_chunks_mut(nr)
+            .zip(batch)
+            .for_each(|(row, (e, m))| {
+                let ze = layout.elim_size[*e];
+                for (h, (oa, za)) in n.her[*e].iter(&layout.couplings[*e]) {
+                    for j in 0..za {
+                        row[oa + j] = (0..ze).map(|k| m[k] * h[j * ze + k]).sum::<f64>();
+                    }
+                }
+            });
+        dense.count = batch.len();
+        dense.flush(s);
+    }
+}
+
+/// The Schur update of one eliminated block of size `ze` with inverse `inv`, pair by
+/// pair of its couplings (both triangles).
+fn eliminate_pairwise(
+    s: &mut DMatrix<f64>,
+    couplings: &[(usize, usize)],
+    her: &Couplings,
+    inv: &Matrix6<f64>,
+    ze: usize,
+) {
     // at_a = H_aᵀ E⁻¹ (za × ze), once per coupling.
-    let ats: Vec<Matrix6<f64>> = couplings
-        .iter()
-        .zip(her)
-        .map(|(&(_, za), h)| {
+    let ats: Vec<Matrix6<f64>> = her
+        .iter(couplings)
+        .map(|(h, (_, za))| {
             let mut at = Matrix6::zeros();
             for i in 0..za {
                 for k in 0..ze {
                     let mut acc = 0.0;
                     for m in 0..ze {
-                        acc += h[(m, i)] * inv[(m, k)];
+                        acc += h[i * ze + m] * inv[(m, k)];
                     }
                     at[(i, k)] = acc;
                 }
@@ -1204,12 +1490,12 @@ fn eliminate_block(
     let nrows = s.nrows();
     let data = s.as_mut_slice();
     for (a, (at, &(oa, za))) in ats.iter().zip(couplings).enumerate() {
-        for (b, (hb, &(ob, zb))) in her.iter().zip(couplings).enumerate().skip(a) {
+        for (b, (hb, (ob, zb))) in her.iter(couplings).enumerate().skip(a) {
             for i in 0..za {
                 for j in 0..zb {
                     let mut v = 0.0;
                     for k in 0..ze {
-                        v += at[(i, k)] * hb[(k, j)];
+                        v += at[(i, k)] * hb[j * ze + k];
                     }
                     data[(oa + i) + (ob + j) * nrows] -= v;
                     if a != b {
@@ -1471,8 +1757,9 @@ mod tests {
             for (c, &(oa, za)) in layout.couplings[e].iter().enumerate() {
                 for i in 0..ze {
                     for j in 0..za {
-                        h[(oe + i, oa + j)] = n.her[e][c][(i, j)];
-                        h[(oa + j, oe + i)] = n.her[e][c][(i, j)];
+                        let v = n.her[e].block(c)[j * ze + i];
+                        h[(oe + i, oa + j)] = v;
+                        h[(oa + j, oe + i)] = v;
                     }
                 }
             }
@@ -1496,8 +1783,14 @@ mod tests {
             }
             let layout = p.layout();
             let loss = Loss::Huber { scale: 2.0 };
-            let one = p.normal_equations_in_parts(&layout, &loss, 1).unwrap();
-            let three = p.normal_equations_in_parts(&layout, &loss, 3).unwrap();
+            let one = p.normal_equations_in_parts(&layout, &loss, 1, None).unwrap();
+            // Written over the equations of another state (as the solve reuses them).
+            let mut other = p.clone();
+            other.points[0] += Vec3::new(0.1, 0.2, -0.1);
+            let spare = other.normal_equations_in_parts(&layout, &loss, 2, None);
+            let three = p
+                .normal_equations_in_parts(&layout, &loss, 3, spare)
+                .unwrap();
             let (h1, g1) = assemble(&layout, &one);
             let (h3, g3) = assemble(&layout, &three);
             let scale = h1.amax();
@@ -1514,6 +1807,7 @@ mod tests {
             let reduced = Reduced {
                 layout: &layout,
                 normal: three,
+                workspace: None,
             };
             let (dr, de) = reduced.solve_damped(lambda, floor).unwrap();
             let nr = layout.n_reduced;
