@@ -246,7 +246,9 @@ impl Couplings {
         &'a self,
         couplings: &'a [(usize, usize)],
     ) -> impl Iterator<Item = (&'a [f64], (usize, usize))> + 'a {
-        self.data.chunks_exact(self.ze * 6).zip(couplings.iter().copied())
+        self.data
+            .chunks_exact(self.ze * 6)
+            .zip(couplings.iter().copied())
     }
 }
 
@@ -255,7 +257,9 @@ impl Normal {
     /// earlier linearisation) cleared, or new ones.
     fn zeroed(layout: &Layout, spare: Option<Normal>) -> Normal {
         match spare {
-            Some(mut n) if n.hee.len() == layout.elim_size.len() && n.gr.len() == layout.n_reduced => {
+            Some(mut n)
+                if n.hee.len() == layout.elim_size.len() && n.gr.len() == layout.n_reduced =>
+            {
                 n.hrr.fill(0.0);
                 n.gr.fill(0.0);
                 n.hee.fill(Matrix6::zeros());
@@ -337,8 +341,16 @@ impl BundleProblem {
 
     /// Reprojection residual (projected − observed, pixels) of one observation.
     pub fn residual(&self, o: &Obs) -> Option<Vec2> {
+        self.residual_from(o, &self.cam_from_world(o.rig, o.cam))
+    }
+
+    fn cam_from_world(&self, rig: usize, cam: usize) -> Pose {
+        (self.world_from_rig[rig] * self.rig_from_cam[cam]).inverse()
+    }
+
+    /// [`Self::residual`], the camera's pose given.
+    fn residual_from(&self, o: &Obs, cam_from_world: &Pose) -> Option<Vec2> {
         let x = self.point_world(&o.point);
-        let cam_from_world = (self.world_from_rig[o.rig] * self.rig_from_cam[o.cam]).inverse();
         self.cameras[o.cam]
             .project(&cam_from_world.apply(&x))
             .map(|uv| uv - o.uv)
@@ -495,59 +507,50 @@ impl BundleProblem {
             pairs: Vec::new(),
             obs_pairs: Vec::new(),
         };
-        let mut pair_index: OffsetMap<(usize, usize), u32> = Default::default();
-        let mut obs_elim = Vec::with_capacity(self.observations.len());
-        // Coupling structure: for each observation's eliminated block, the index in its
-        // coupling list of each of the observation's reduced blocks (rig, camera, point).
-        let mut index: Vec<OffsetMap<usize, usize>> =
-            vec![Default::default(); layout.elim_size.len()];
-        for o in &self.observations {
+        let obs_blocks = |o: &Obs| {
             let (pslot, psize) = match o.point {
                 PointRef::Free(i) => (layout.point[i], 3),
                 PointRef::Body { body, .. } => (layout.body[body], 6),
             };
-            let blocks = [
+            [
                 (layout.rig[o.rig], 6),
                 (layout.cam[o.cam], 6),
                 (pslot, psize),
-            ];
-            let mut entry = [None, None, None];
-            let elim = blocks.iter().find_map(|(s, _)| {
-                if let Slot::Elim(e) = s {
-                    Some(*e)
-                } else {
-                    None
-                }
-            });
-            obs_elim.push(elim);
+            ]
+        };
+        // The distinct pairs of reduced blocks. Observations come grouped by frame and
+        // camera, so most find their pair where the previous one at the same position
+        // did: a one-entry cache per position spares most of the hashing.
+        let mut pair_index: OffsetMap<(usize, usize), u32> = Default::default();
+        let mut last_pair = [((usize::MAX, usize::MAX), 0u32); 6];
+        let mut pairs = Vec::new();
+        let mut obs_pairs = Vec::with_capacity(self.observations.len());
+        let mut obs_elim = Vec::with_capacity(self.observations.len());
+        for o in &self.observations {
+            let blocks = obs_blocks(o);
+            obs_elim.push(blocks.iter().find_map(|(s, _)| match s {
+                Slot::Elim(e) => Some(*e),
+                _ => None,
+            }));
             let mut own = [u32::MAX; 6];
             for a in 0..3 {
                 for b in a..3 {
                     if let ((Slot::Reduced(oa), za), (Slot::Reduced(ob), zb)) =
                         (blocks[a], blocks[b])
                     {
-                        let pairs = &mut layout.pairs;
-                        own[PAIR_INDEX[a][b]] = *pair_index.entry((oa, ob)).or_insert_with(|| {
-                            pairs.push((oa, za, ob, zb));
-                            (pairs.len() - 1) as u32
-                        });
+                        let at = PAIR_INDEX[a][b];
+                        if last_pair[at].0 != (oa, ob) {
+                            let idx = *pair_index.entry((oa, ob)).or_insert_with(|| {
+                                pairs.push((oa, za, ob, zb));
+                                (pairs.len() - 1) as u32
+                            });
+                            last_pair[at] = ((oa, ob), idx);
+                        }
+                        own[at] = last_pair[at].1;
                     }
                 }
             }
-            layout.obs_pairs.push(own);
-            if let Some(e) = elim {
-                for (k, (s, size)) in blocks.iter().enumerate() {
-                    if let Slot::Reduced(off) = s {
-                        let list = &mut layout.couplings[e];
-                        let idx = *index[e].entry(*off).or_insert_with(|| {
-                            list.push((*off, *size));
-                            list.len() - 1
-                        });
-                        entry[k] = Some(idx);
-                    }
-                }
-            }
-            layout.obs_coupling.push(entry);
+            obs_pairs.push(own);
         }
         // A counting sort of the observations by eliminated block.
         let ne = layout.elim_size.len();
@@ -566,6 +569,30 @@ impl BundleProblem {
             next[key(e)] += 1;
         }
         start.pop();
+        // Coupling structure, block by eliminated block: for each observation, the index
+        // in its eliminated block's coupling list of each of its reduced blocks (rig,
+        // camera, point). `seen[offset]`: the last block that listed that reduced block,
+        // and where.
+        let mut couplings = vec![Vec::new(); ne];
+        let mut obs_coupling = vec![[None; 3]; self.observations.len()];
+        let mut seen = vec![(usize::MAX, 0); layout.n_reduced];
+        for (e, list) in couplings.iter_mut().enumerate() {
+            for &oi in &order[start[e]..start[e + 1]] {
+                for (k, (s, size)) in obs_blocks(&self.observations[oi]).iter().enumerate() {
+                    if let Slot::Reduced(off) = *s {
+                        if seen[off].0 != e {
+                            list.push((off, *size));
+                            seen[off] = (e, list.len() - 1);
+                        }
+                        obs_coupling[oi][k] = Some(seen[off].1);
+                    }
+                }
+            }
+        }
+        layout.couplings = couplings;
+        layout.obs_coupling = obs_coupling;
+        layout.pairs = pairs;
+        layout.obs_pairs = obs_pairs;
         layout.elim_order = order;
         layout.elim_start = start;
         layout
@@ -574,14 +601,18 @@ impl BundleProblem {
     /// Robust cost `½ Σ ρ(|r|²) + ½ Σ r_d²`; infinite if any point falls behind its camera.
     pub fn cost(&self, loss: &Loss) -> f64 {
         // Over the cores in fixed chunks summed in order, so that the value does not
-        // depend on the number of threads.
+        // depend on the number of threads; each camera's pose in each rig pose once.
+        let nc = self.rig_from_cam.len();
+        let cam_from_world: Vec<Pose> = (0..self.world_from_rig.len() * nc)
+            .map(|i| self.cam_from_world(i / nc, i % nc))
+            .collect();
         let chunks: Vec<f64> = self
             .observations
             .par_chunks(COST_CHUNK)
             .map(|chunk| {
                 let mut c = 0.0;
                 for o in chunk {
-                    match self.residual(o) {
+                    match self.residual_from(o, &cam_from_world[o.rig * nc + o.cam]) {
                         Some(r) => c += loss.rho(r.norm_squared()),
                         None => return f64::INFINITY,
                     }
@@ -673,7 +704,12 @@ impl BundleProblem {
 
     /// The normal equations at this state, written into `spare` when given (equations
     /// of the same layout, reused: see [`Workspace`]).
-    fn normal_equations(&self, layout: &Layout, loss: &Loss, spare: Option<Normal>) -> Option<Normal> {
+    fn normal_equations(
+        &self,
+        layout: &Layout,
+        loss: &Loss,
+        spare: Option<Normal>,
+    ) -> Option<Normal> {
         let parts = (self.observations.len() / MIN_PART_OBSERVATIONS).clamp(1, MAX_PARTS);
         self.normal_equations_in_parts(layout, loss, parts, spare)
     }
@@ -1165,7 +1201,12 @@ fn solve_lower(s: &mut DMatrix<f64>, b: DVector<f64>) -> Option<DVector<f64>> {
     .ok()?;
     let mut x = b;
     let rhs = faer::MatMut::from_column_major_slice_mut(x.as_mut_slice(), n, 1);
-    llt::solve::solve_in_place(l.rb(), rhs, par, MemStack::new(&mut MemBuffer::new(StackReq::EMPTY)));
+    llt::solve::solve_in_place(
+        l.rb(),
+        rhs,
+        par,
+        MemStack::new(&mut MemBuffer::new(StackReq::EMPTY)),
+    );
     x.iter().all(|v| v.is_finite()).then_some(x)
 }
 
@@ -1214,6 +1255,12 @@ impl<'a> LeastSquares for RigFit<'a> {
 
     fn retract(&self, x: &BundleProblem, step: &RigStep) -> BundleProblem {
         x.apply_step(self.layout, &step.0, &step.1)
+    }
+
+    /// A point behind a camera has an infinite cost, and the normal equations sum the
+    /// same robust cost (in another order).
+    fn linearizable_where_finite(&self) -> bool {
+        true
     }
 
     /// A step small against the parameters (relative, as Ceres' parameter tolerance).
@@ -1360,7 +1407,8 @@ impl<'b> DenseRows<'b> {
     fn flush(&mut self, s: &mut DMatrix<f64>) {
         if self.count > 0 {
             let n = self.n;
-            let bt = faer::MatRef::from_column_major_slice(&self.buf[..n * self.count], n, self.count);
+            let bt =
+                faer::MatRef::from_column_major_slice(&self.buf[..n * self.count], n, self.count);
             let dst = faer::MatMut::from_column_major_slice_mut(s.as_mut_slice(), n, n);
             triangular::matmul(
                 dst,
@@ -1783,7 +1831,9 @@ mod tests {
             }
             let layout = p.layout();
             let loss = Loss::Huber { scale: 2.0 };
-            let one = p.normal_equations_in_parts(&layout, &loss, 1, None).unwrap();
+            let one = p
+                .normal_equations_in_parts(&layout, &loss, 1, None)
+                .unwrap();
             // Written over the equations of another state (as the solve reuses them).
             let mut other = p.clone();
             other.points[0] += Vec3::new(0.1, 0.2, -0.1);

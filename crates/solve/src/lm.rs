@@ -68,6 +68,14 @@ pub trait LeastSquares {
         false
     }
 
+    /// Whether every point of finite cost can be linearised, with the cost its
+    /// linearisation reports equal to [`cost`](Self::cost)'s. Then a step whose small
+    /// decrease ends the fit is taken without linearising where it leads (for the rig
+    /// bundle that last linearisation was a sixth of the solve). Not unless said.
+    fn linearizable_where_finite(&self) -> bool {
+        false
+    }
+
     /// Whether `step`, solved at damping `lambda`, is small enough to be taken on the
     /// word of the quadratic model without evaluating the cost there; it ends the fit.
     /// Never, unless said (a whole-tag fit skips its last model evaluation so).
@@ -255,6 +263,16 @@ pub fn minimize<P: LeastSquares>(
             Damping::Marquardt { .. } => f64::NAN,
         };
         let gain = decrease / predicted.max(1e-300);
+        if decrease > 0.0 && problem.linearizable_where_finite() {
+            let new_cost = fit.cost - decrease;
+            if decrease <= rules.function_tolerance * new_cost.max(1e-300) || new_cost < 1e-24 {
+                fit.point = candidate;
+                fit.accepted += 1;
+                fit.cost = new_cost;
+                end(&mut fit, Termination::SmallDecrease, true);
+                return Some(fit);
+            }
+        }
         // Linearise at the candidate before accepting it: a point that evaluates but
         // cannot be linearised (on the edge of a camera's depth range) is refused.
         let accepted = if decrease > 0.0 {
@@ -493,6 +511,55 @@ mod tests {
         assert!(fit.converged, "{fit:?}");
         assert!((&fit.point - &exact).norm() < 1e-10, "{fit:?} vs {exact}");
         assert!((fit.point - DVector::from_vec(vec![2.0, -1.0])).norm() < 0.05);
+    }
+
+    /// A problem that says every finite point is linearisable is not linearised where
+    /// its last (small-decrease) step leads; the fit is otherwise the same.
+    #[test]
+    fn a_fit_ending_on_a_small_decrease_skips_its_last_linearisation_when_allowed() {
+        struct Counted {
+            line: Line,
+            finite_is_linearizable: bool,
+            linearizations: usize,
+        }
+        impl LeastSquares for Counted {
+            type Point = DVector<f64>;
+            type Normal = Dense<Dyn>;
+            fn linearize(&mut self, p: &DVector<f64>) -> Option<Dense<Dyn>> {
+                self.linearizations += 1;
+                self.line.linearize(p)
+            }
+            fn cost(&mut self, p: &DVector<f64>) -> Option<f64> {
+                self.line.cost(p)
+            }
+            fn retract(&self, p: &DVector<f64>, s: &DVector<f64>) -> DVector<f64> {
+                p + s
+            }
+            fn linearizable_where_finite(&self) -> bool {
+                self.finite_is_linearizable
+            }
+        }
+        let pts = vec![(0.0, 1.0), (1.0, 2.5), (2.0, 3.5), (3.0, 5.5), (4.0, 6.9)];
+        let fits: Vec<_> = [false, true]
+            .into_iter()
+            .map(|finite_is_linearizable| {
+                let mut p = Counted {
+                    line: Line(pts.clone()),
+                    finite_is_linearizable,
+                    linearizations: 0,
+                };
+                let fit =
+                    minimize(&mut p, DVector::from_vec(vec![5.0, 5.0]), &Rules::default()).unwrap();
+                (fit, p.linearizations)
+            })
+            .collect();
+        let ((full, n_full), (short, n_short)) = (&fits[0], &fits[1]);
+        assert_eq!(full.termination, Termination::SmallDecrease, "{full:?}");
+        assert_eq!(short.termination, Termination::SmallDecrease, "{short:?}");
+        assert_eq!(full.point, short.point);
+        assert_eq!(full.iterations, short.iterations);
+        assert!((full.cost - short.cost).abs() <= 1e-12 * full.cost);
+        assert_eq!(*n_short + 1, *n_full);
     }
 
     /// The predicted decrease is the damped model's: for a quadratic cost and no
