@@ -253,20 +253,21 @@ impl Couplings {
 }
 
 impl Normal {
-    /// Zero normal equations of `layout`: `spare` (equations of the same layout, from an
-    /// earlier linearisation) cleared, or new ones.
+    /// Normal equations of `layout` to accumulate into: `spare` (equations of the same
+    /// layout, from an earlier linearisation) with its reduced rows cleared, or new ones.
+    /// The eliminated blocks' rows of `spare` are left to the parts of
+    /// [`BundleProblem::normal_equations_in_parts`] that own them, which clear them over
+    /// the cores.
     fn zeroed(layout: &Layout, spare: Option<Normal>) -> Normal {
         match spare {
             Some(mut n)
                 if n.hee.len() == layout.elim_size.len() && n.gr.len() == layout.n_reduced =>
             {
-                n.hrr.fill(0.0);
+                n.hrr
+                    .as_mut_slice()
+                    .par_chunks_mut(1 << 16)
+                    .for_each(|c| c.fill(0.0));
                 n.gr.fill(0.0);
-                n.hee.fill(Matrix6::zeros());
-                n.ge.fill(Vector6::zeros());
-                for h in &mut n.her {
-                    h.data.fill(0.0);
-                }
                 n.cost = 0.0;
                 n
             }
@@ -757,6 +758,11 @@ impl BundleProblem {
         let partial: Vec<Option<Part>> = jobs
             .into_par_iter()
             .map(|(range, first_elim, hee, ge, her)| {
+                hee.fill(Matrix6::zeros());
+                ge.fill(Vector6::zeros());
+                for h in her.iter_mut() {
+                    h.data.fill(0.0);
+                }
                 let (mut pair, mut gr) = (vec![Matrix6::zeros(); np], DVector::zeros(nr));
                 let mut sink = Sink {
                     hrr: None,
