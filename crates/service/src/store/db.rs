@@ -261,6 +261,41 @@ impl Tx {
     }
 }
 
+/// How long opening an SQLite file waits out another process's lock.
+const SQLITE_OPEN_PATIENCE: Duration = Duration::from_secs(10);
+
+/// `SQLITE_BUSY` or one of its extended codes (the low byte is the primary code).
+fn is_busy(e: &dyn sqlx::error::DatabaseError) -> bool {
+    const SQLITE_BUSY: i32 = 5;
+    e.code()
+        .and_then(|c| c.parse::<i32>().ok())
+        .is_some_and(|c| c & 0xff == SQLITE_BUSY)
+}
+
+/// Open a pool on an SQLite file, retrying while another process holds a lock that
+/// SQLite does not wait for itself: a replica closing its last connection checkpoints
+/// the WAL under an exclusive lock, and a connection opening then may get `SQLITE_BUSY`
+/// at once rather than through the busy handler.
+async fn open_sqlite(opts: SqliteConnectOptions) -> sqlx::Result<SqlitePool> {
+    let start = std::time::Instant::now();
+    let mut pause = Duration::from_millis(20);
+    loop {
+        match SqlitePoolOptions::new()
+            .max_connections(8)
+            .connect_with(opts.clone())
+            .await
+        {
+            Err(sqlx::Error::Database(e))
+                if is_busy(&*e) && start.elapsed() < SQLITE_OPEN_PATIENCE =>
+            {
+                tokio::time::sleep(pause).await;
+                pause = (pause * 2).min(Duration::from_millis(500));
+            }
+            other => return other,
+        }
+    }
+}
+
 impl Db {
     /// Connect to `url` (`sqlite://PATH` or `postgres://…`) and apply this build's
     /// migrations. PostgreSQL's migrator holds an advisory lock while it runs, so
@@ -272,22 +307,12 @@ impl Db {
                     std::fs::create_dir_all(dir)
                         .with_context(|| format!("creating directory {}", dir.display()))?;
                 }
-                // WAL, foreign keys, a busy timeout, synchronous=FULL so an acknowledged
-                // write survives a crash.
-                let opts = SqliteConnectOptions::from_str(&format!("sqlite://{path}"))?
-                    .create_if_missing(true)
-                    .journal_mode(SqliteJournalMode::Wal)
-                    .synchronous(SqliteSynchronous::Full)
-                    .foreign_keys(true)
-                    .busy_timeout(Duration::from_secs(10));
-                let pool = SqlitePoolOptions::new()
-                    .max_connections(8)
-                    .connect_with(opts)
-                    .await
-                    .with_context(|| format!("opening database {path}"))?;
                 // sqlx takes no lock on SQLite, so a `serve` and a `worker` started together
-                // on a new file would both apply migration 1; a file lock beside the
-                // database serialises them (the second finds everything applied).
+                // on a new file would both apply migration 1, and switching a new file to
+                // WAL upgrades a read lock to an exclusive one, which SQLite refuses at once
+                // to the second of two processes doing it together (it skips the busy
+                // handler where waiting could deadlock); a file lock beside the database
+                // serialises opening and migrating (the second finds everything done).
                 let lock_path = format!("{path}.migrate-lock");
                 let lock = tokio::task::spawn_blocking(move || {
                     let f = std::fs::File::create(&lock_path)
@@ -297,6 +322,17 @@ impl Db {
                 })
                 .await
                 .context("migration lock task")??;
+                // WAL, foreign keys, a busy timeout, synchronous=FULL so an acknowledged
+                // write survives a crash.
+                let opts = SqliteConnectOptions::from_str(&format!("sqlite://{path}"))?
+                    .create_if_missing(true)
+                    .journal_mode(SqliteJournalMode::Wal)
+                    .synchronous(SqliteSynchronous::Full)
+                    .foreign_keys(true)
+                    .busy_timeout(Duration::from_secs(10));
+                let pool = open_sqlite(opts)
+                    .await
+                    .with_context(|| format!("opening database {path}"))?;
                 sqlx::migrate!("../../migrations/sqlite")
                     .run(&pool)
                     .await
