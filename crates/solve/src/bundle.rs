@@ -205,7 +205,7 @@ type Blocks = [(Slot, usize, J26); 4];
 
 /// Normal equations `H δ = −g`, split into reduced and eliminated parts.
 struct Normal {
-    hrr: DMatrix<f64>,
+    hrr: ReducedBlocks,
     gr: DVector<f64>,
     hee: Vec<Matrix6<f64>>,
     ge: Vec<Vector6<f64>>,
@@ -252,6 +252,88 @@ impl Couplings {
     }
 }
 
+/// A block of `H_RR` outside the layout's pairs: `(offset a, size a, offset b, size b,
+/// block)`.
+type ExtraBlock = (usize, usize, usize, usize, Matrix6<f64>);
+
+/// `H_RR`, the reduced part of the normal equations, as its nonzero blocks: one per pair
+/// of reduced blocks that observations couple ([`Layout::pairs`]), and those of the
+/// distance and prior terms. The dense matrix is written only where it is solved
+/// ([`ReducedBlocks::write_into`]): kept dense (K = 200 rig poses: 12 MB, nearly all
+/// zeros) it was cleared at every linearisation and copied at every damped solve.
+struct ReducedBlocks {
+    /// Aligned with [`Layout::pairs`].
+    pairs: Vec<Matrix6<f64>>,
+    /// In the order they were added.
+    extra: Vec<ExtraBlock>,
+    /// The diagonal of `H_RR` (the damping's scale), once the blocks are complete.
+    diag: DVector<f64>,
+}
+
+impl ReducedBlocks {
+    fn zeros(layout: &Layout) -> Self {
+        Self {
+            pairs: vec![Matrix6::zeros(); layout.pairs.len()],
+            extra: Vec::new(),
+            diag: DVector::zeros(layout.n_reduced),
+        }
+    }
+
+    fn clear(&mut self) {
+        self.pairs.fill(Matrix6::zeros());
+        self.extra.clear();
+        self.diag.fill(0.0);
+    }
+
+    fn blocks<'a>(
+        &'a self,
+        layout: &'a Layout,
+    ) -> impl Iterator<Item = ((usize, usize), (usize, usize), &'a Matrix6<f64>)> + 'a {
+        let pairs = self
+            .pairs
+            .iter()
+            .zip(&layout.pairs)
+            .map(|(h, &(oa, za, ob, zb))| ((oa, za), (ob, zb), h));
+        let extra = self
+            .extra
+            .iter()
+            .map(|(oa, za, ob, zb, h)| ((*oa, *za), (*ob, *zb), h));
+        pairs.chain(extra)
+    }
+
+    /// Sum the diagonal, once every block is in.
+    fn finish(&mut self, layout: &Layout) {
+        let mut diag = std::mem::take(&mut self.diag);
+        diag.fill(0.0);
+        for ((oa, za), (ob, _), h) in self.blocks(layout) {
+            if oa == ob {
+                for i in 0..za {
+                    diag[oa + i] += h[(i, i)];
+                }
+            }
+        }
+        self.diag = diag;
+    }
+
+    /// The dense symmetric matrix (both triangles) into `s`, `n_reduced` square: the
+    /// pairs are distinct, so each entry is the same sum, in the same order, as blocks
+    /// added into a zero matrix one after another.
+    fn write_into(&self, s: &mut DMatrix<f64>, layout: &Layout) {
+        s.as_mut_slice()
+            .par_chunks_mut(1 << 16)
+            .for_each(|c| c.fill(0.0));
+        for (a, b, h) in self.blocks(layout) {
+            add_symmetric_block(s, a, b, h);
+        }
+    }
+
+    fn to_dense(&self, layout: &Layout) -> DMatrix<f64> {
+        let mut s = DMatrix::zeros(layout.n_reduced, layout.n_reduced);
+        self.write_into(&mut s, layout);
+        s
+    }
+}
+
 impl Normal {
     /// Normal equations of `layout` to accumulate into: `spare` (equations of the same
     /// layout, from an earlier linearisation) with its reduced rows cleared, or new ones.
@@ -261,12 +343,11 @@ impl Normal {
     fn zeroed(layout: &Layout, spare: Option<Normal>) -> Normal {
         match spare {
             Some(mut n)
-                if n.hee.len() == layout.elim_size.len() && n.gr.len() == layout.n_reduced =>
+                if n.hee.len() == layout.elim_size.len()
+                    && n.gr.len() == layout.n_reduced
+                    && n.hrr.pairs.len() == layout.pairs.len() =>
             {
-                n.hrr
-                    .as_mut_slice()
-                    .par_chunks_mut(1 << 16)
-                    .for_each(|c| c.fill(0.0));
+                n.hrr.clear();
                 n.gr.fill(0.0);
                 n.cost = 0.0;
                 n
@@ -279,7 +360,7 @@ impl Normal {
         let nr = layout.n_reduced;
         let ne = layout.elim_size.len();
         Normal {
-            hrr: DMatrix::zeros(nr, nr),
+            hrr: ReducedBlocks::zeros(layout),
             gr: DVector::zeros(nr),
             hee: vec![Matrix6::zeros(); ne],
             ge: vec![Vector6::zeros(); ne],
@@ -296,7 +377,7 @@ impl Normal {
     /// All of the normal equations as a sink.
     fn sink(&mut self) -> Sink<'_> {
         Sink {
-            hrr: Some(&mut self.hrr),
+            extra: Some(&mut self.hrr.extra),
             pair: &mut [],
             gr: &mut self.gr,
             hee: &mut self.hee,
@@ -310,8 +391,9 @@ impl Normal {
 /// Where observations accumulate: the reduced rows, and the rows of the eliminated
 /// blocks from `first_elim` on (a part of the observations owns a run of them).
 struct Sink<'a> {
-    /// The reduced matrix, or (observations) the blocks of their reduced pairs.
-    hrr: Option<&'a mut DMatrix<f64>>,
+    /// Blocks of reduced pairs not in the layout's table (distances and priors), or
+    /// (observations) the table's blocks `pair`.
+    extra: Option<&'a mut Vec<ExtraBlock>>,
     pair: &'a mut [Matrix6<f64>],
     gr: &'a mut DVector<f64>,
     hee: &'a mut [Matrix6<f64>],
@@ -703,6 +785,49 @@ impl BundleProblem {
         Some(cost)
     }
 
+    /// The residuals of the distance constraints and direction priors with their
+    /// Jacobian blocks, and whether each residual counts in the cost: a prior spanning
+    /// more than 4 cameras comes in chunks of 4 blocks with the same residual, counted
+    /// once; cross terms between chunks are dropped (a first-order approximation that
+    /// only slows convergence along the held direction, never moves the minimum).
+    fn constraint_terms(&self, layout: &Layout) -> Vec<(Blocks, Vec2, bool)> {
+        let zero = (Slot::Fixed, 0, J26::zeros());
+        let mut terms = Vec::with_capacity(self.distances.len() + self.priors.len());
+        for d in &self.distances {
+            let (xa, xb) = (self.point_world(&d.a), self.point_world(&d.b));
+            let diff = xa - xb;
+            let len = diff.norm().max(1e-12);
+            let s = self.pixel_sigma / d.sigma;
+            let r = Vec2::new((len - d.distance) * s, 0.0);
+            let u = diff.transpose() * (s / len);
+            let (sa, za, ja) = self.point_block(&d.a, layout);
+            let (sb, zb, jb) = self.point_block(&d.b, layout);
+            let mut j_a = J26::zeros();
+            j_a.fixed_view_mut::<1, 6>(0, 0).copy_from(&(u * ja));
+            let mut j_b = J26::zeros();
+            j_b.fixed_view_mut::<1, 6>(0, 0).copy_from(&(-u * jb));
+            terms.push(([(sa, za, j_a), (sb, zb, j_b), zero, zero], r, true));
+        }
+        for p in &self.priors {
+            let r = Vec2::new(self.prior_residual(p), 0.0);
+            let s = self.pixel_sigma / p.sigma;
+            if p.terms.is_empty() {
+                terms.push(([zero; 4], r, true));
+            }
+            for (k, chunk) in p.terms.chunks(4).enumerate() {
+                let mut blocks: Blocks = [zero; 4];
+                for (i, (c, v)) in chunk.iter().enumerate() {
+                    let mut j = J26::zeros();
+                    j.fixed_view_mut::<1, 6>(0, 0)
+                        .copy_from(&(v.transpose() * s));
+                    blocks[i] = (layout.cam[*c], 6, j);
+                }
+                terms.push((blocks, r, k == 0));
+            }
+        }
+        terms
+    }
+
     /// The normal equations at this state, written into `spare` when given (equations
     /// of the same layout, reused: see [`Workspace`]).
     fn normal_equations(
@@ -765,7 +890,7 @@ impl BundleProblem {
                 }
                 let (mut pair, mut gr) = (vec![Matrix6::zeros(); np], DVector::zeros(nr));
                 let mut sink = Sink {
-                    hrr: None,
+                    extra: None,
                     pair: &mut pair,
                     gr: &mut gr,
                     hee,
@@ -778,68 +903,21 @@ impl BundleProblem {
                 Some((pair, gr, cost))
             })
             .collect();
-        let mut pair = vec![Matrix6::zeros(); np];
         for part in partial {
             let (p, gr, cost) = part?;
-            for (a, b) in pair.iter_mut().zip(&p) {
+            for (a, b) in n.hrr.pairs.iter_mut().zip(&p) {
                 *a += b;
             }
             n.gr += gr;
             n.cost += cost;
         }
-        for (h, &(oa, za, ob, zb)) in pair.iter().zip(&layout.pairs) {
-            add_symmetric_block(&mut n.hrr, (oa, za), (ob, zb), h);
-        }
-        let zero = (Slot::Fixed, 0, J26::zeros());
-        for d in &self.distances {
-            let (xa, xb) = (self.point_world(&d.a), self.point_world(&d.b));
-            let diff = xa - xb;
-            let len = diff.norm().max(1e-12);
-            let s = self.pixel_sigma / d.sigma;
-            let r = Vec2::new((len - d.distance) * s, 0.0);
-            n.cost += 0.5 * r.x * r.x;
-            let u = diff.transpose() * (s / len);
-            let (sa, za, ja) = self.point_block(&d.a, layout);
-            let (sb, zb, jb) = self.point_block(&d.b, layout);
-            let mut j_a = J26::zeros();
-            j_a.fixed_view_mut::<1, 6>(0, 0).copy_from(&(u * ja));
-            let mut j_b = J26::zeros();
-            j_b.fixed_view_mut::<1, 6>(0, 0).copy_from(&(-u * jb));
-            Self::accumulate(
-                &mut n.sink(),
-                &[(sa, za, j_a), (sb, zb, j_b), zero, zero],
-                &r,
-                1.0,
-                None,
-                None,
-            );
-        }
-        for p in &self.priors {
-            let r = Vec2::new(self.prior_residual(p), 0.0);
-            n.cost += 0.5 * r.x * r.x;
-            let s = self.pixel_sigma / p.sigma;
-            let mut blocks: Blocks = [zero; 4];
-            for (i, (c, v)) in p.terms.iter().take(4).enumerate() {
-                let mut j = J26::zeros();
-                j.fixed_view_mut::<1, 6>(0, 0)
-                    .copy_from(&(v.transpose() * s));
-                blocks[i] = (layout.cam[*c], 6, j);
+        for (blocks, r, counted) in self.constraint_terms(layout) {
+            if counted {
+                n.cost += 0.5 * r.x * r.x;
             }
-            // Priors spanning more than 4 cameras are applied in chunks of 4 blocks;
-            // cross terms between chunks are dropped (a first-order approximation that
-            // only slows convergence along the held direction, never moves the minimum).
             Self::accumulate(&mut n.sink(), &blocks, &r, 1.0, None, None);
-            for chunk in p.terms.chunks(4).skip(1) {
-                let mut blocks: Blocks = [zero; 4];
-                for (i, (c, v)) in chunk.iter().enumerate() {
-                    let mut j = J26::zeros();
-                    j.fixed_view_mut::<1, 6>(0, 0)
-                        .copy_from(&(v.transpose() * s));
-                    blocks[i] = (layout.cam[*c], 6, j);
-                }
-                Self::accumulate(&mut n.sink(), &blocks, &r, 1.0, None, None);
-            }
         }
+        n.hrr.finish(layout);
         Some(n)
     }
 
@@ -884,10 +962,10 @@ impl BundleProblem {
                         }
                     }
                     (Slot::Reduced(oa), Slot::Reduced(ob)) => {
-                        if let Some(hrr) = n.hrr.as_deref_mut() {
+                        if let Some(extra) = n.extra.as_deref_mut() {
                             let mut h = Matrix6::zeros();
                             add_jtj((h.as_mut_slice(), 6), (&wa, za), (&jb, zb));
-                            add_symmetric_block(hrr, (oa, za), (ob, zb), &h);
+                            extra.push((oa, za, ob, zb, h));
                         }
                     }
                     (Slot::Elim(e), Slot::Elim(f)) if e == f => {
@@ -1065,30 +1143,8 @@ impl BundleProblem {
     /// columns follow the free cameras in index order, `[dt, dφ]` each.
     pub fn extrinsic_information(&self, loss: &Loss) -> Option<(Vec<usize>, DMatrix<f64>)> {
         let layout = self.layout();
-        let n = self.normal_equations(&layout, loss, None)?;
-        // Schur complement of the eliminated blocks (undamped, pseudo-inverse if singular).
-        let mut s = n.hrr.clone();
-        let inv: Vec<Matrix6<f64>> = n
-            .hee
-            .par_iter()
-            .zip(&layout.elim_size)
-            .map(|(hee, &size)| pseudo_inverse_block(hee, size))
-            .collect();
-        schur_complement(&mut s, None, &layout, &n, &inv, &mut Vec::new());
-        mirror_lower(&mut s);
-        let cams: Vec<usize> = (0..self.rig_from_cam.len())
-            .filter(|&c| matches!(layout.cam[c], Slot::Reduced(_)))
-            .collect();
-        let keep: Vec<usize> = cams
-            .iter()
-            .flat_map(|&c| {
-                if let Slot::Reduced(o) = layout.cam[c] {
-                    (o..o + 6).collect::<Vec<_>>()
-                } else {
-                    vec![]
-                }
-            })
-            .collect();
+        let (s, _, _) = self.undamped_reduced(&layout, loss)?;
+        let (cams, keep) = self.free_extrinsic_rows(&layout);
         let other: Vec<usize> = (0..layout.n_reduced)
             .filter(|i| !keep.contains(i))
             .collect();
@@ -1114,6 +1170,42 @@ impl BundleProblem {
             reduced[(i, j)] / (dk[i] * dk[j])
         });
         Some((cams, (&info + info.transpose()) * 0.5))
+    }
+
+    /// The free cameras in index order and their rows in the reduced system.
+    fn free_extrinsic_rows(&self, layout: &Layout) -> (Vec<usize>, Vec<usize>) {
+        let cams: Vec<usize> = (0..self.rig_from_cam.len())
+            .filter(|&c| matches!(layout.cam[c], Slot::Reduced(_)))
+            .collect();
+        let rows = cams
+            .iter()
+            .flat_map(|&c| match layout.cam[c] {
+                Slot::Reduced(o) => o..o + 6,
+                _ => 0..0,
+            })
+            .collect();
+        (cams, rows)
+    }
+
+    /// The undamped normal equations at this state with the eliminated blocks' inverses
+    /// (pseudo-inverses where singular) and the Schur complement of those blocks, both
+    /// triangles.
+    fn undamped_reduced(
+        &self,
+        layout: &Layout,
+        loss: &Loss,
+    ) -> Option<(DMatrix<f64>, Normal, Vec<Matrix6<f64>>)> {
+        let n = self.normal_equations(layout, loss, None)?;
+        let mut s = n.hrr.to_dense(layout);
+        let inv: Vec<Matrix6<f64>> = n
+            .hee
+            .par_iter()
+            .zip(&layout.elim_size)
+            .map(|(hee, &size)| pseudo_inverse_block(hee, size))
+            .collect();
+        schur_complement(&mut s, None, layout, &n, &inv, &mut Vec::new());
+        mirror_lower(&mut s);
+        Some((s, n, inv))
     }
 }
 
@@ -1317,13 +1409,13 @@ impl NormalEquations for Reduced<'_> {
         let work = shared.as_deref_mut().unwrap_or(&mut own);
         let mut s = match work.reduced.take() {
             Some(mut s) if s.nrows() == nr => {
-                s.copy_from(&n.hrr);
+                n.hrr.write_into(&mut s, layout);
                 s
             }
-            _ => n.hrr.clone(),
+            _ => n.hrr.to_dense(layout),
         };
         for i in 0..nr {
-            s[(i, i)] += lambda * n.hrr[(i, i)].max(floor);
+            s[(i, i)] += lambda * n.hrr.diag[i].max(floor);
         }
         let mut rhs = -n.gr.clone();
         let einv: Vec<Matrix6<f64>> = n
@@ -1365,7 +1457,7 @@ impl NormalEquations for Reduced<'_> {
         let n = &self.normal;
         let mut pred = 0.0;
         for i in 0..self.layout.n_reduced {
-            pred += dr[i] * (lambda * n.hrr[(i, i)].max(floor) * dr[i] - n.gr[i]);
+            pred += dr[i] * (lambda * n.hrr.diag[i].max(floor) * dr[i] - n.gr[i]);
         }
         for (e, d) in de.iter().enumerate() {
             for k in 0..self.layout.elim_size[e] {
@@ -1798,7 +1890,8 @@ mod tests {
         let total = nr + layout.elim_size.iter().sum::<usize>();
         let mut h = DMatrix::zeros(total, total);
         let mut g = DVector::zeros(total);
-        h.view_mut((0, 0), (nr, nr)).copy_from(&n.hrr);
+        h.view_mut((0, 0), (nr, nr))
+            .copy_from(&n.hrr.to_dense(layout));
         g.rows_mut(0, nr).copy_from(&n.gr);
         let mut oe = nr;
         for (e, &ze) in layout.elim_size.iter().enumerate() {
