@@ -223,6 +223,66 @@ fn auxiliary_views_find_both_grids_left_to_right() {
 }
 
 #[test]
+fn line_points_are_within_five_hundredths_of_a_pixel_for_strokes_of_3_to_15_px_up_to_60_degrees() {
+    // The issue's sweep: strokes 3-15 px wide (at the grid's centre, seen square on),
+    // the sheet turned 0-60° about its horizontal axis, no lens, barrel radtan and a
+    // fisheye; σ 2 grey.
+    let lenses = [
+        CameraModel::Pinhole,
+        CameraModel::Radtan {
+            k1: -0.25,
+            k2: 0.08,
+            p1: 0.0005,
+            p2: -0.0004,
+            k3: 0.0,
+        },
+        CameraModel::Equidistant {
+            k1: 0.02,
+            k2: -0.01,
+            k3: 0.0,
+            k4: 0.0,
+        },
+    ];
+    let mut seed = 500;
+    let (mut worst, mut missed) = (0.0f64, Vec::new());
+    for model in lenses {
+        let cam = rig_lens(model);
+        for width_px in [3.0, 6.0, 10.0, 15.0] {
+            for tilt_deg in [0.0f64, 30.0, 60.0] {
+                // 1-2 m away, the stroke chosen for the width.
+                let z = 2.0 - (width_px - 3.0) / 12.0;
+                let stroke = width_px * z / cam.fx;
+                let layout = LineLayout::grid(0.5, 0.2, 3, 3, stroke);
+                // Target x → camera x, its normal (y) away from the camera, z → up.
+                let square_on =
+                    nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]);
+                let tilt = rigcal_core::geometry::so3::exp(&(Vec3::x() * tilt_deg.to_radians()));
+                let rot = tilt * square_on;
+                let pose = Pose::new(rot, Vec3::new(0.0, 0.0, z) - rot * layout.centre());
+                seed += 1;
+                let img = render_line_targets(&cam, &[pose], &layout, &opts(seed, 2.0));
+                let found = detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout);
+                let view = format!("{model:?}, {width_px} px, {tilt_deg}°");
+                assert!(found.len() <= 1, "{view}: {} grids", found.len());
+                let Some(d) = found.first() else {
+                    missed.push(view);
+                    continue;
+                };
+                let rms = best_symmetry_rms(&cam, &pose, &layout, d);
+                assert!(rms <= 0.05, "{view}: RMS {rms:.4} px");
+                worst = worst.max(rms);
+            }
+        }
+    }
+    eprintln!("worst line-point RMS {worst:.4} px; missed {missed:?}");
+    // Measured: 0.0038-0.0132 px over the 35 grids found. One view finds no grid at all
+    // (open in issue 21): the radtan lens with 15 px strokes at 60°, the sheet square in
+    // the middle of the image; the same view finds it without a lens or through the
+    // fisheye.
+    assert!(missed.len() <= 1, "missed {missed:?}");
+}
+
+#[test]
 fn a_blank_or_noisy_image_has_no_grid() {
     let cam = rig_camera();
     let layout = RingPrint::GRID.layout();
