@@ -115,8 +115,26 @@ fn every_rig_camera_finds_its_grid_with_centre_points_within_five_hundredths_of_
     }
 }
 
-/// The rig camera with a lens: none, radtan (barrel, 8 % at the image corner) or
-/// equidistant (a fisheye of the same focal length).
+/// No lens, radtan (barrel, 8 % at the image corner) and equidistant (a fisheye of the
+/// same focal length).
+const LENSES: [CameraModel; 3] = [
+    CameraModel::Pinhole,
+    CameraModel::Radtan {
+        k1: -0.25,
+        k2: 0.08,
+        p1: 0.0005,
+        p2: -0.0004,
+        k3: 0.0,
+    },
+    CameraModel::Equidistant {
+        k1: 0.02,
+        k2: -0.01,
+        k3: 0.0,
+        k4: 0.0,
+    },
+];
+
+/// The rig camera with one of the [`LENSES`].
 fn rig_lens(model: CameraModel) -> Camera {
     Camera {
         model,
@@ -136,25 +154,7 @@ fn grids_in_realistic_captures_are_found_at_every_lens() {
         ..Nuisance::default()
     };
     // Each lens on every third camera of the ring (all eight once over the three).
-    for (i, model) in [
-        CameraModel::Pinhole,
-        CameraModel::Radtan {
-            k1: -0.25,
-            k2: 0.08,
-            p1: 0.0005,
-            p2: -0.0004,
-            k3: 0.0,
-        },
-        CameraModel::Equidistant {
-            k1: 0.02,
-            k2: -0.01,
-            k3: 0.0,
-            k4: 0.0,
-        },
-    ]
-    .into_iter()
-    .enumerate()
-    {
+    for (i, model) in LENSES.into_iter().enumerate() {
         let cam = rig_lens(model);
         let mut worst = 0.0f64;
         for k in (i..8).step_by(3) {
@@ -227,25 +227,9 @@ fn line_points_are_within_five_hundredths_of_a_pixel_for_strokes_of_3_to_15_px_u
     // The sweep: strokes 3-15 px wide (at the grid's centre, seen square on),
     // the sheet turned 0-60° about its horizontal axis, no lens, barrel radtan and a
     // fisheye; σ 2 grey.
-    let lenses = [
-        CameraModel::Pinhole,
-        CameraModel::Radtan {
-            k1: -0.25,
-            k2: 0.08,
-            p1: 0.0005,
-            p2: -0.0004,
-            k3: 0.0,
-        },
-        CameraModel::Equidistant {
-            k1: 0.02,
-            k2: -0.01,
-            k3: 0.0,
-            k4: 0.0,
-        },
-    ];
     let mut seed = 500;
     let (mut worst, mut missed) = (0.0f64, Vec::new());
-    for model in lenses {
+    for model in LENSES {
         let cam = rig_lens(model);
         for width_px in [3.0, 6.0, 10.0, 15.0] {
             for tilt_deg in [0.0f64, 30.0, 60.0] {
