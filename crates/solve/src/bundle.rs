@@ -1143,7 +1143,7 @@ impl BundleProblem {
     /// columns follow the free cameras in index order, `[dt, dφ]` each.
     pub fn extrinsic_information(&self, loss: &Loss) -> Option<(Vec<usize>, DMatrix<f64>)> {
         let layout = self.layout();
-        let (s, _, _) = self.undamped_reduced(&layout, loss)?;
+        let s = self.undamped_reduced(&layout, loss)?;
         let (cams, keep) = self.free_extrinsic_rows(&layout);
         let other: Vec<usize> = (0..layout.n_reduced)
             .filter(|i| !keep.contains(i))
@@ -1187,14 +1187,9 @@ impl BundleProblem {
         (cams, rows)
     }
 
-    /// The undamped normal equations at this state with the eliminated blocks' inverses
-    /// (pseudo-inverses where singular) and the Schur complement of those blocks, both
-    /// triangles.
-    fn undamped_reduced(
-        &self,
-        layout: &Layout,
-        loss: &Loss,
-    ) -> Option<(DMatrix<f64>, Normal, Vec<Matrix6<f64>>)> {
+    /// The Schur complement of the eliminated blocks in the undamped normal equations at
+    /// this state (pseudo-inverses of the blocks where singular), both triangles.
+    fn undamped_reduced(&self, layout: &Layout, loss: &Loss) -> Option<DMatrix<f64>> {
         let n = self.normal_equations(layout, loss, None)?;
         let mut s = n.hrr.to_dense(layout);
         let inv: Vec<Matrix6<f64>> = n
@@ -1205,7 +1200,7 @@ impl BundleProblem {
             .collect();
         schur_complement(&mut s, None, layout, &n, &inv, &mut Vec::new());
         mirror_lower(&mut s);
-        Some((s, n, inv))
+        Some(s)
     }
 }
 
