@@ -222,48 +222,103 @@ fn auxiliary_views_find_both_grids_left_to_right() {
     }
 }
 
-#[test]
-fn line_points_are_within_five_hundredths_of_a_pixel_for_strokes_of_3_to_15_px_up_to_60_degrees() {
-    // The issue's sweep: strokes 3-15 px wide (at the grid's centre, seen square on),
-    // the sheet turned 0-60° about its horizontal axis, no lens, barrel radtan and a
-    // fisheye; σ 2 grey.
-    let mut seed = 500;
+/// One view of a sweep: a `lines_x` × `lines_z` grid with strokes `width_px` wide (at
+/// its centre, seen square on) 1-2 m in front of the camera, turned by `turn` (target
+/// frame to camera, after the square-on pose).
+struct SweepView {
+    width_px: f64,
+    turn: nalgebra::Matrix3<f64>,
+    lines: (usize, usize),
+}
+
+/// Detect every view at every lens (σ 2 grey): the worst line-point RMS over the grids
+/// found and the views that found none.
+fn sweep(views: &[(String, SweepView)], mut seed: u64) -> (f64, Vec<String>) {
     let (mut worst, mut missed) = (0.0f64, Vec::new());
     for model in LENSES {
         let cam = rig_lens(model);
-        for width_px in [3.0, 6.0, 10.0, 15.0] {
-            for tilt_deg in [0.0f64, 30.0, 60.0] {
-                // 1-2 m away, the stroke chosen for the width.
-                let z = 2.0 - (width_px - 3.0) / 12.0;
-                let stroke = width_px * z / cam.fx;
-                let layout = LineLayout::grid(0.5, 0.2, 3, 3, stroke);
-                // Target x → camera x, its normal (y) away from the camera, z → up.
-                let square_on =
-                    nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]);
-                let tilt = rigcal_core::geometry::so3::exp(&(Vec3::x() * tilt_deg.to_radians()));
-                let rot = tilt * square_on;
-                let pose = Pose::new(rot, Vec3::new(0.0, 0.0, z) - rot * layout.centre());
-                seed += 1;
-                let img = render_line_targets(&cam, &[pose], &layout, &opts(seed, 2.0));
-                let found = detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout);
-                let view = format!("{model:?}, {width_px} px, {tilt_deg}°");
-                assert!(found.len() <= 1, "{view}: {} grids", found.len());
-                let Some(d) = found.first() else {
-                    missed.push(view);
-                    continue;
+        for (name, v) in views {
+            let z = 2.0 - (v.width_px - 3.0) / 12.0;
+            let stroke = v.width_px * z / cam.fx;
+            let layout = LineLayout::grid(0.5, 0.2, v.lines.0, v.lines.1, stroke);
+            // Target x → camera x, its normal (y) away from the camera, z → up.
+            let square_on = nalgebra::Matrix3::from_columns(&[Vec3::x(), Vec3::z(), -Vec3::y()]);
+            let rot = v.turn * square_on;
+            let pose = Pose::new(rot, Vec3::new(0.0, 0.0, z) - rot * layout.centre());
+            seed += 1;
+            let img = render_line_targets(&cam, &[pose], &layout, &opts(seed, 2.0));
+            let found = detect_line_grids(&Gray::from_luma8(&img), Lens(Some(&cam)), &layout);
+            let view = format!("{model:?}, {name}");
+            assert!(found.len() <= 1, "{view}: {} grids", found.len());
+            let Some(d) = found.first() else {
+                missed.push(view);
+                continue;
+            };
+            let rms = best_symmetry_rms(&cam, &pose, &layout, d);
+            assert!(rms <= 0.05, "{view}: RMS {rms:.4} px");
+            worst = worst.max(rms);
+        }
+    }
+    (worst, missed)
+}
+
+fn turn(axis: Vec3, deg: f64) -> nalgebra::Matrix3<f64> {
+    rigcal_core::geometry::so3::exp(&(axis * deg.to_radians()))
+}
+
+#[test]
+fn line_points_are_within_five_hundredths_of_a_pixel_for_strokes_of_3_to_15_px_up_to_60_degrees() {
+    // The issue's sweep: strokes 3-15 px wide, the sheet turned 0-60° about its
+    // horizontal axis, no lens, barrel radtan and a fisheye.
+    let mut views = Vec::new();
+    for width_px in [3.0, 6.0, 10.0, 15.0] {
+        for tilt_deg in [0.0f64, 30.0, 60.0] {
+            let v = SweepView {
+                width_px,
+                turn: turn(Vec3::x(), tilt_deg),
+                lines: (3, 3),
+            };
+            views.push((format!("{width_px} px, {tilt_deg}°"), v));
+        }
+    }
+    let (worst, missed) = sweep(&views, 500);
+    eprintln!("worst line-point RMS {worst:.4} px; missed {missed:?}");
+    // Measured 0.0038-0.0132 px. Every view finds its grid: the radtan lens with 15 px
+    // strokes at 60° once found none (the stub beyond the last crossing curved its
+    // chain into the stroke, and the whole chain was refused as a curve).
+    assert!(missed.is_empty(), "missed {missed:?}");
+}
+
+#[test]
+fn grids_turned_about_every_axis_and_in_their_plane_are_found() {
+    // Yawed, pitched and rolled sheets, "#" (3×3) and 3×2 grids, the thinnest and the
+    // widest strokes. Before chains were cut into straight pieces, 7 of 144 such views
+    // (all with 15 px strokes at 60° of yaw or 40° of yaw and pitch) found no grid.
+    let mut views = Vec::new();
+    for width_px in [3.0, 15.0] {
+        for (yaw, pitch, roll) in [
+            (30.0, 0.0, 0.0),
+            (60.0, 0.0, 0.0),
+            (0.0, 30.0, 20.0),
+            (0.0, 45.0, 45.0),
+            (40.0, 40.0, 30.0),
+            (-50.0, 20.0, 10.0),
+        ] {
+            for lines in [(3, 3), (3, 2)] {
+                let v = SweepView {
+                    width_px,
+                    turn: turn(Vec3::y(), yaw) * turn(Vec3::x(), pitch) * turn(Vec3::z(), roll),
+                    lines,
                 };
-                let rms = best_symmetry_rms(&cam, &pose, &layout, d);
-                assert!(rms <= 0.05, "{view}: RMS {rms:.4} px");
-                worst = worst.max(rms);
+                let name =
+                    format!("{width_px} px, yaw {yaw}° pitch {pitch}° roll {roll}°, {lines:?}");
+                views.push((name, v));
             }
         }
     }
+    let (worst, missed) = sweep(&views, 900);
     eprintln!("worst line-point RMS {worst:.4} px; missed {missed:?}");
-    // Measured: 0.0038-0.0132 px over the 35 grids found. One view finds no grid at all
-    // (open in issue 21): the radtan lens with 15 px strokes at 60°, the sheet square in
-    // the middle of the image; the same view finds it without a lens or through the
-    // fisheye.
-    assert!(missed.len() <= 1, "missed {missed:?}");
+    assert!(missed.is_empty(), "missed {missed:?}");
 }
 
 #[test]

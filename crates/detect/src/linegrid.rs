@@ -8,7 +8,8 @@
 //!
 //! - **Linking.** Neighbouring line pixels whose normals agree within 6° and whose
 //!   centres lie on one line are joined; chains are cut where the Hessian degenerates,
-//!   i.e. at every crossing, and collinear chains are merged back into one line.
+//!   i.e. at every crossing, a chain that still bends is cut into its straight pieces,
+//!   and collinear pieces are merged back into one line.
 //! - **One print.** Lines that cross each other (within their extents) belong to one
 //!   print. A print's lines are two-coloured by "crosses": lines of one group never cross
 //!   each other, so the colouring *is* the grouping, and no vanishing-point clustering is
@@ -30,7 +31,7 @@ use super::linetarget::DetectedLine;
 use super::refine::Lens;
 use super::ridge::{ridge_points, untilt, RidgePoint, SCALES};
 use rigcal_core::geometry::homography::homography;
-use rigcal_core::geometry::line2::{distance, fit_line, intersect};
+use rigcal_core::geometry::line2::{distance, fit_line, intersect, through};
 use rigcal_core::geometry::{Vec2, Vec3};
 use rigcal_core::target::line_layout::{Axis, LineLayout, Mark};
 use serde::Serialize;
@@ -212,28 +213,71 @@ fn chains(img: &Gray, lens: Lens, pts: &[RidgePoint]) -> Vec<Chain> {
         else {
             continue;
         };
-        let Some(line) = fit_line(&ideal_pts) else {
+        straight_pieces(points, ideal_pts, &mut out);
+    }
+    out
+}
+
+/// Largest RMS distance (ideal px) of a chain's points from its line: beyond it the
+/// chain is a curve, a blob or texture, not (only) a printed line.
+const MAX_CHAIN_RMS: f64 = 0.6;
+
+/// The straight pieces of one linked chain, pushed onto `out`. Linking follows normals
+/// that turn by under 6° per pixel, so a chain can bend: at the short stub a stroke
+/// leaves beyond its last crossing, where the end and the crossing line both pull the
+/// smoothed profile, the centres curve into the crossing and on along the stroke. Such
+/// a chain is cut where it strays farthest from the chord between its ends (as
+/// Douglas–Peucker simplifies a polyline) until each piece is straight, so the curve
+/// costs only its own points, not the whole stroke's.
+fn straight_pieces(points: Vec<RidgePoint>, ideal: Vec<Vec2>, out: &mut Vec<Chain>) {
+    let mut todo = vec![(points, ideal)];
+    while let Some((points, ideal)) = todo.pop() {
+        if points.len() < MIN_CHAIN {
+            continue;
+        }
+        let Some(line) = fit_line(&ideal) else {
             continue;
         };
-        let rms = (ideal_pts
+        let rms = (ideal
             .iter()
             .map(|q| distance(&line, q).powi(2))
             .sum::<f64>()
-            / ideal_pts.len() as f64)
+            / ideal.len() as f64)
             .sqrt();
-        if rms > 0.6 {
-            continue; // a curve, a blob or texture, not a printed line
+        if rms <= MAX_CHAIN_RMS {
+            let mut s: Vec<f32> = points.iter().map(|p| p.strength).collect();
+            s.sort_by(f32::total_cmp);
+            out.push(Chain {
+                strength: s[s.len() / 2],
+                points,
+                ideal,
+                line,
+            });
+            continue;
         }
-        let mut s: Vec<f32> = points.iter().map(|p| p.strength).collect();
-        s.sort_by(f32::total_cmp);
-        out.push(Chain {
-            strength: s[s.len() / 2],
-            points,
-            ideal: ideal_pts,
-            line,
-        });
+        // Along the chain (its principal direction), then the point farthest from the
+        // chord between the two ends.
+        let d = direction(&line);
+        let mut order: Vec<usize> = (0..points.len()).collect();
+        order.sort_by(|&a, &b| ideal[a].dot(&d).total_cmp(&ideal[b].dot(&d)));
+        let (first, last) = (ideal[order[0]], ideal[order[order.len() - 1]]);
+        let Some(chord) = through(&first, &last) else {
+            continue;
+        };
+        let far = (1..order.len() - 1)
+            .max_by(|&a, &b| {
+                distance(&chord, &ideal[order[a]])
+                    .abs()
+                    .total_cmp(&distance(&chord, &ideal[order[b]]).abs())
+            })
+            .unwrap_or(order.len() / 2);
+        for part in [&order[..far], &order[far + 1..]] {
+            todo.push((
+                part.iter().map(|&k| points[k]).collect(),
+                part.iter().map(|&k| ideal[k]).collect(),
+            ));
+        }
     }
-    out
 }
 
 /// A merged printed line: its points (raw and ideal), fitted line and extent.
@@ -632,4 +676,72 @@ fn label(
         equivalent_labellings: equivalent,
         mark_error,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(pos: Vec2, normal: Vec2) -> RidgePoint {
+        RidgePoint {
+            pos,
+            normal,
+            strength: 50.0,
+            sigma: 1.5,
+            pixel: (pos.x as u32, pos.y as u32),
+            paper_tilt: None,
+            tilt_lever: 0.0,
+        }
+    }
+
+    #[test]
+    fn a_chain_that_bends_at_its_end_keeps_its_straight_run() {
+        // 60 points along y = 100, then a quarter circle of radius 12 turning up.
+        let mut pts: Vec<Vec2> = (0..60).map(|i| Vec2::new(i as f64, 100.0)).collect();
+        for k in 1..=18 {
+            let a = k as f64 / 18.0 * std::f64::consts::FRAC_PI_2;
+            pts.push(Vec2::new(59.0 + 12.0 * a.sin(), 112.0 - 12.0 * a.cos()));
+        }
+        let points: Vec<RidgePoint> = pts.iter().map(|&p| point(p, Vec2::y())).collect();
+        let whole = fit_line(&pts).unwrap();
+        let rms = (pts.iter().map(|q| distance(&whole, q).powi(2)).sum::<f64>() / pts.len() as f64)
+            .sqrt();
+        assert!(
+            rms > MAX_CHAIN_RMS,
+            "the whole chain is a curve ({rms:.2} px)"
+        );
+
+        let mut out = Vec::new();
+        straight_pieces(points, pts.clone(), &mut out);
+        let longest = out.iter().max_by_key(|c| c.points.len()).unwrap();
+        // Every point of the straight run but at most the last few, where the curve begins.
+        let on_line = longest.ideal.iter().filter(|q| q.y == 100.0).count();
+        assert!(on_line >= 55, "{on_line} of 60 straight points kept");
+        assert!(longest.ideal.iter().all(|q| (q.y - 100.0).abs() < 1.0));
+        for c in &out {
+            let rms = (c
+                .ideal
+                .iter()
+                .map(|q| distance(&c.line, q).powi(2))
+                .sum::<f64>()
+                / c.ideal.len() as f64)
+                .sqrt();
+            assert!(rms <= MAX_CHAIN_RMS);
+        }
+    }
+
+    #[test]
+    fn a_straight_chain_is_one_piece() {
+        let pts: Vec<Vec2> = (0..40)
+            .map(|i| Vec2::new(3.0 + 0.8 * i as f64, 7.0 + 0.6 * i as f64))
+            .collect();
+        let points = pts
+            .iter()
+            .map(|&p| point(p, Vec2::new(-0.6, 0.8)))
+            .collect();
+        let mut out = Vec::new();
+        straight_pieces(points, pts, &mut out);
+        assert_eq!(out.len(), 1);
+        assert_eq!(out[0].points.len(), 40);
+    }
 }
