@@ -1479,19 +1479,15 @@ struct DenseRows<'b> {
 }
 
 impl<'b> DenseRows<'b> {
-    /// Rows per batch for rows of length `n`.
-    fn batch(n: usize) -> usize {
-        std::env::var("RIGCAL_BATCH").ok().and_then(|s| s.parse().ok()).unwrap_or(512)
-    }
+    const BATCH: usize = 512;
 
     /// Rows of length `n` in `buf`, grown (with zeros) to hold a batch.
     fn new(n: usize, buf: &'b mut Vec<f64>) -> Self {
-        let batch = Self::batch(n);
-        if buf.len() < n * batch {
-            buf.resize(n * batch, 0.0);
+        if buf.len() < n * Self::BATCH {
+            buf.resize(n * Self::BATCH, 0.0);
         }
         Self {
-            buf: &mut buf[..n * batch],
+            buf: &mut buf[..n * Self::BATCH],
             n,
             count: 0,
         }
@@ -1588,7 +1584,7 @@ fn schur_complement(
         .flatten()
         .collect();
     let mut dense = DenseRows::new(nr, rows_buf);
-    for batch in rows.chunks(DenseRows::batch(nr)) {
+    for batch in rows.chunks(DenseRows::BATCH) {
         dense
             .buf
             .par_chunks_mut(nr)
