@@ -258,6 +258,17 @@ fn planar_rotation(groups: &[Vec<(Pose, Pose)>]) -> Option<Mat3> {
     Some(so3::exp(&(a * phi)) * r0)
 }
 
+/// A camera the shared scenes turn this far (rad) from its hand-eye rotation has a wrong
+/// link: the hand-eye turn about a planar axis is off by 1-3° at 1 px of corner noise.
+const LINK_CONFLICT: f64 = 10.0 * std::f64::consts::PI / 180.0;
+/// Scale (rad) of the Cauchy weight of a link in the robust average.
+const LINK_SCALE: f64 = 3.0 * std::f64::consts::PI / 180.0;
+
+/// The angle (rad) between two rotations.
+fn angle(a: &Mat3, b: &Mat3) -> f64 {
+    so3::log(&(a * b.transpose())).norm()
+}
+
 /// Chordal rotation averaging over the graph `world_from_scene = W_f · X_c · P` by
 /// Gauss–Seidel sweeps (frame `base` and the reference camera held), the extrinsic
 /// rotations included. Where a camera sees a scene another camera saw (scene
@@ -266,6 +277,11 @@ fn planar_rotation(groups: &[Vec<(Pose, Pose)>]) -> Option<Mat3> {
 /// turn about the axis from translations only (on a loop it was off by 1-3° at 1 px).
 /// Where no scene is shared, the turn about the planar axis is a flat direction of
 /// these averages and stays where it was.
+///
+/// With `prior` (each camera's hand-eye rotation and the number of motion pairs behind
+/// it) the cameras' rotations are also held by their own motions, and every link is
+/// weighed by a Cauchy weight of how far it disagrees (scale [`LINK_SCALE`]): a wrong
+/// link then turns nothing, where alone it is all that sets a camera's turn.
 fn chordal_refinement(
     edges: &[(usize, usize, usize, Pose)],
     rot: &mut [Mat3],
@@ -273,13 +289,28 @@ fn chordal_refinement(
     rs: &mut [Option<Mat3>],
     base: usize,
     r: usize,
+    prior: Option<&[(Mat3, f64)]>,
 ) {
     let (nc, nf, ns) = (rot.len(), rw.len(), rs.len());
+    let mut weight = vec![1.0; edges.len()];
     for _ in 0..100 {
+        if prior.is_some() {
+            for (wt, &(f, s, c, p)) in weight.iter_mut().zip(edges) {
+                if let (Some(w), Some(sr)) = (rw[f], rs[s]) {
+                    let t = angle(&sr, &(w * rot[c] * p.rot)) / LINK_SCALE;
+                    *wt = 1.0 / (1.0 + t * t);
+                }
+            }
+        }
         let mut acc_x = vec![Mat3::zeros(); nc];
-        for &(f, s, c, p) in edges {
+        for (&wt, &(f, s, c, p)) in weight.iter().zip(edges) {
             if let (Some(w), Some(sr)) = (rw[f], rs[s]) {
-                acc_x[c] += w.transpose() * sr * p.rot.transpose();
+                acc_x[c] += wt * w.transpose() * sr * p.rot.transpose();
+            }
+        }
+        if let Some(prior) = prior {
+            for (a, (r, n)) in acc_x.iter_mut().zip(prior) {
+                *a += *n * r;
             }
         }
         for c in 0..nc {
@@ -288,9 +319,9 @@ fn chordal_refinement(
             }
         }
         let mut acc_s = vec![Mat3::zeros(); ns];
-        for &(f, s, c, p) in edges {
+        for (&wt, &(f, s, c, p)) in weight.iter().zip(edges) {
             if let Some(w) = rw[f] {
-                acc_s[s] += w * rot[c] * p.rot;
+                acc_s[s] += wt * w * rot[c] * p.rot;
             }
         }
         for s in 0..ns {
@@ -299,9 +330,9 @@ fn chordal_refinement(
             }
         }
         let mut acc_w = vec![Mat3::zeros(); nf];
-        for &(f, s, c, p) in edges {
+        for (&wt, &(f, s, c, p)) in weight.iter().zip(edges) {
             if let Some(sr) = rs[s] {
-                acc_w[f] += sr * (rot[c] * p.rot).transpose();
+                acc_w[f] += wt * sr * (rot[c] * p.rot).transpose();
             }
         }
         for f in 0..nf {
@@ -337,6 +368,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
 
     let mut stats = (0, 0, 0);
     let mut rot = vec![Mat3::identity(); nc];
+    let mut pairs_of = vec![0usize; nc];
     for c in 0..nc {
         if c == r {
             continue;
@@ -346,6 +378,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             return Err(InitError::CameraNotObserved(session.cameras[c].id.clone()));
         }
         rot[c] = rotation(&pairs, motion.class, &mut stats);
+        pairs_of[c] = pairs.iter().map(Vec::len).sum();
     }
 
     // Rotation graph over frames and scenes: world_from_scene = W_k · X_c · P.
@@ -386,7 +419,23 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             break;
         }
     }
-    chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r);
+    let hand_eye = rot.clone();
+    let (rw0, rs0) = (rw.clone(), rs.clone());
+    chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r, None);
+    if (0..nc).any(|c| angle(&rot[c], &hand_eye[c]) > LINK_CONFLICT) {
+        // A scene shared between cameras turned a camera far from where its own motions
+        // put it: some link is wrong (a far tag placed with the wrong one of its two
+        // planar poses, seen once by the other camera, turned side cameras by 70° on a
+        // planar drive). Average again from the hand-eye rotations, each held by its
+        // motion pairs, with every link weighed by how well it agrees.
+        let prior: Vec<(Mat3, f64)> = hand_eye
+            .iter()
+            .zip(&pairs_of)
+            .map(|(r, &n)| (*r, n as f64))
+            .collect();
+        (rot, rw, rs) = (hand_eye, rw0, rs0);
+        chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r, Some(&prior));
+    }
 
     // Translations: unknowns [t_X (cams ≠ ref) | t_W (frames ≠ base) | t_S (scenes)].
     let cam_col: Vec<Option<usize>> = (0..nc)
@@ -600,6 +649,66 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A planar rig: the reference camera sees scene 0 in 12 frames, camera 1 (turned
+    /// 90° about the plane normal) its own scene 1 in the same frames, and scene 0 once,
+    /// through a pose turned 70° wrong. Alone, that link sets camera 1's turn; held by
+    /// its motions (the prior) and weighed by agreement, it turns nothing.
+    #[test]
+    fn one_wrong_link_does_not_turn_a_camera_its_motions_hold() {
+        let y = Vec3::y();
+        let x1 = so3::exp(&(y * 90f64.to_radians()));
+        let frames: Vec<Mat3> = (0..12)
+            .map(|k| so3::exp(&(y * (6.0 * (k as f64 * 0.7).sin()).to_radians())))
+            .collect();
+        let scenes = [
+            so3::exp(&Vec3::new(0.1, 0.4, -0.2)),
+            so3::exp(&Vec3::new(-0.3, 1.9, 0.1)),
+        ];
+        let truth = [Mat3::identity(), x1];
+        let pose = |r: Mat3| Pose::new(r, Vec3::zeros());
+        // cam_from_scene = X_cᵀ W_fᵀ S_s.
+        let mut edges = Vec::new();
+        for (f, w) in frames.iter().enumerate() {
+            edges.push((
+                f,
+                0,
+                0,
+                pose(truth[0].transpose() * w.transpose() * scenes[0]),
+            ));
+            edges.push((
+                f,
+                1,
+                1,
+                pose(truth[1].transpose() * w.transpose() * scenes[1]),
+            ));
+        }
+        let wrong = so3::exp(&(y * 70f64.to_radians()));
+        edges.push((
+            3,
+            0,
+            1,
+            pose(wrong * x1.transpose() * frames[3].transpose() * scenes[0]),
+        ));
+        let run = |prior: Option<&[(Mat3, f64)]>| {
+            let mut rot = truth.to_vec();
+            let mut rw: Vec<Option<Mat3>> = frames.iter().map(|w| Some(*w)).collect();
+            let mut rs: Vec<Option<Mat3>> = scenes.iter().map(|s| Some(*s)).collect();
+            chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, 0, 0, prior);
+            angle(&rot[1], &x1).to_degrees()
+        };
+        let alone = run(None);
+        assert!(
+            alone > 30.0,
+            "the wrong link alone turned camera 1 by {alone:.1}°"
+        );
+        let prior = [(Mat3::identity(), 11.0), (x1, 11.0)];
+        let held = run(Some(&prior));
+        assert!(
+            held < 0.5,
+            "held by its motions, camera 1 is {held:.2}° off"
+        );
+    }
 
     #[test]
     fn eq6_null_vector_is_the_rotation() {
