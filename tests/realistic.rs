@@ -153,30 +153,31 @@ async fn a_rendered_hall_capture_calibrates_through_the_service() {
 }
 
 /// A planar S-curve whose cameras are linked only through small wall tags: in these
-/// two drives (0.1 px) one side camera sees the reference camera's scene in a single
-/// frame, through a tag posed with the wrong one of its two planar solutions. That one
-/// link used to turn the side cameras 70-72° about the plane normal away from where
-/// their own 13 motions put them, and the rig adjustment ended `failed`
-/// (`inconsistent_rig`, 3-60 px). Links that disagree with the motions are now
-/// down-weighted: the result is `degraded` (`planar_motion`) with every rotation right.
+/// two drives (0.1 px) a side camera sees another camera's scene through a tag posed
+/// with the wrong one of its two planar solutions. That link used to turn the side
+/// cameras 70-100° about the plane normal away from where their own 13 motions put
+/// them, and the rig adjustment ended `failed` (`inconsistent_rig`, 3-60 px). The
+/// robust average from the hand-eye rotations now competes with the plain one, and the
+/// rotations that explain the motions' translations win: `degraded` (`planar_motion`)
+/// with every rotation right. The other way round, on the U-turn hall (seed 1014), the
+/// right camera's hand-eye rotation is 12° off and the scene it shares along the drive
+/// is right: that must still win (`succeeded`).
 #[test]
 fn a_wrong_link_between_cameras_does_not_turn_a_planar_rig() {
-    for seed in [1000, 1001] {
-        let (session, truth) = synthetic_session("car-hall-planar", seed, 0.1).unwrap();
+    for (preset, seed, status) in [
+        ("car-hall-planar", 1000, Status::Degraded),
+        ("car-hall-planar", 1001, Status::Degraded),
+        ("car-hall", 1014, Status::Succeeded),
+    ] {
+        let (session, truth) = synthetic_session(preset, seed, 0.1).unwrap();
         let doc = calibrate(&session, &CalibOptions::default());
-        assert_eq!(
-            doc.status,
-            Status::Degraded,
-            "seed {seed}: {:?}",
-            doc.reasons
-        );
-        assert!(doc.reasons.iter().any(|r| r.code == "planar_motion"));
+        assert_eq!(doc.status, status, "{preset} {seed}: {:?}", doc.reasons);
         for (c, cam) in session.cameras.iter().enumerate() {
             let est = ExtrinsicValue::pose(&doc.extrinsics[c].value);
             let e = error6(&est, &truth.ref_from_cam[&cam.id]);
             let deg = e.rows(3, 3).norm().to_degrees();
-            // Measured 0.0012-0.0040°.
-            assert!(deg < 0.02, "seed {seed}: {} off by {deg:.4}°", cam.id);
+            // Measured 0.0012-0.0040° (planar), 0.0015-0.0024° (U-turn).
+            assert!(deg < 0.02, "{preset} {seed}: {} off by {deg:.4}°", cam.id);
         }
     }
 }

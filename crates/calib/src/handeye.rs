@@ -263,6 +263,99 @@ fn planar_rotation(groups: &[Vec<(Pose, Pose)>]) -> Option<Mat3> {
 const LINK_CONFLICT: f64 = 10.0 * std::f64::consts::PI / 180.0;
 /// Scale (rad) of the Cauchy weight of a link in the robust average.
 const LINK_SCALE: f64 = 3.0 * std::f64::consts::PI / 180.0;
+/// How many links' worth a camera's own motions count in the robust average: more than
+/// a scene it shares in one or two frames, less than one it shares along the drive
+/// (the hand-eye rotation itself was 12° off on a U-turn drive whose shared scene had it
+/// right).
+const PRIOR_LINKS: f64 = 2.5;
+
+/// Cauchy weight of a camera's prior at rotation `x`.
+fn prior_weight(x: &Mat3, prior: &Mat3) -> f64 {
+    let t = angle(x, prior) / LINK_SCALE;
+    PRIOR_LINKS / (1.0 + t * t)
+}
+
+/// The rotations of the averaging: extrinsics, frames, scenes.
+#[derive(Clone)]
+struct Graph {
+    rot: Vec<Mat3>,
+    rw: Vec<Option<Mat3>>,
+    rs: Vec<Option<Mat3>>,
+}
+
+/// How badly extrinsic rotation `x` explains a camera's motion pairs' translations:
+/// the least-squares residual (m²) of `(R_A − I) t_X − s_g x t_B = −t_A` over `t_X` and
+/// a scale `s_g` per group (see [`planar_rotation`]). Under planar motion the rotations
+/// cannot tell a turn about the axis (they commute with it); the translations can.
+fn translation_misfit(groups: &[Vec<(Pose, Pose)>], x: &Mat3) -> f64 {
+    let n: usize = groups.iter().map(Vec::len).sum();
+    if n == 0 {
+        return 0.0;
+    }
+    let cols = 3 + groups.len();
+    let mut a = DMatrix::zeros(3 * n, cols);
+    let mut b = DVector::zeros(3 * n);
+    let mut row = 0;
+    for (g, pairs) in groups.iter().enumerate() {
+        for (pa, pb) in pairs {
+            let d = pa.rot - Mat3::identity();
+            let xt = x * pb.trans;
+            for i in 0..3 {
+                for j in 0..3 {
+                    a[(row + i, j)] = d[(i, j)];
+                }
+                a[(row + i, 3 + g)] = -xt[i];
+                b[row + i] = -pa.trans[i];
+            }
+            row += 3;
+        }
+    }
+    match a.clone().svd(true, true).solve(&b, 1e-9) {
+        Ok(sol) => (a * sol - b).norm_squared(),
+        Err(_) => f64::INFINITY,
+    }
+}
+
+/// Where the plain average (`averaged`) turned a camera far from its hand-eye rotation
+/// (`start`, the graph propagated from the hand-eye rotations), some link disagrees with
+/// the motions. Either the average is right (a hand-eye rotation 12° off from small
+/// turns, corrected by a scene shared along a U-turn drive) or a link is wrong (a far tag
+/// placed with the wrong one of its two planar poses, seen by another camera, turned
+/// side cameras 70-100° on a planar drive). The alternative is the robust average from
+/// the hand-eye rotations; of the two, the one whose rotations explain the cameras'
+/// motion translations (`groups`, per camera) better is kept.
+fn relink(
+    edges: &[(usize, usize, usize, Pose)],
+    groups: &[Vec<Vec<(Pose, Pose)>>],
+    averaged: Graph,
+    start: Graph,
+    base: usize,
+    r: usize,
+) -> Graph {
+    let prior = start.rot.clone();
+    let mut robust = start;
+    chordal_refinement(
+        edges,
+        &mut robust.rot,
+        &mut robust.rw,
+        &mut robust.rs,
+        base,
+        r,
+        Some(&prior),
+    );
+    let misfit = |g: &Graph| -> f64 {
+        g.rot
+            .iter()
+            .zip(groups)
+            .map(|(x, gs)| translation_misfit(gs, x))
+            .sum()
+    };
+    if misfit(&robust) < misfit(&averaged) {
+        robust
+    } else {
+        averaged
+    }
+}
 
 /// The angle (rad) between two rotations.
 fn angle(a: &Mat3, b: &Mat3) -> f64 {
@@ -278,10 +371,9 @@ fn angle(a: &Mat3, b: &Mat3) -> f64 {
 /// Where no scene is shared, the turn about the planar axis is a flat direction of
 /// these averages and stays where it was.
 ///
-/// With `prior` (each camera's hand-eye rotation and the number of motion pairs behind
-/// it) the cameras' rotations are also held by their own motions, and every link is
-/// weighed by a Cauchy weight of how far it disagrees (scale [`LINK_SCALE`]): a wrong
-/// link then turns nothing, where alone it is all that sets a camera's turn.
+/// With `prior` (each camera's hand-eye rotation) the cameras' rotations are also held
+/// by their own motions, as [`PRIOR_LINKS`] links would hold them, and every link and
+/// prior is weighed by a Cauchy weight of how far it disagrees (scale [`LINK_SCALE`]).
 fn chordal_refinement(
     edges: &[(usize, usize, usize, Pose)],
     rot: &mut [Mat3],
@@ -289,7 +381,7 @@ fn chordal_refinement(
     rs: &mut [Option<Mat3>],
     base: usize,
     r: usize,
-    prior: Option<&[(Mat3, f64)]>,
+    prior: Option<&[Mat3]>,
 ) {
     let (nc, nf, ns) = (rot.len(), rw.len(), rs.len());
     let mut weight = vec![1.0; edges.len()];
@@ -309,8 +401,8 @@ fn chordal_refinement(
             }
         }
         if let Some(prior) = prior {
-            for (a, (r, n)) in acc_x.iter_mut().zip(prior) {
-                *a += *n * r;
+            for ((a, p), x) in acc_x.iter_mut().zip(prior).zip(rot.iter()) {
+                *a += prior_weight(x, p) * p;
             }
         }
         for c in 0..nc {
@@ -368,7 +460,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
 
     let mut stats = (0, 0, 0);
     let mut rot = vec![Mat3::identity(); nc];
-    let mut pairs_of = vec![0usize; nc];
+    let mut groups = vec![Vec::new(); nc];
     for c in 0..nc {
         if c == r {
             continue;
@@ -378,7 +470,7 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             return Err(InitError::CameraNotObserved(session.cameras[c].id.clone()));
         }
         rot[c] = rotation(&pairs, motion.class, &mut stats);
-        pairs_of[c] = pairs.iter().map(Vec::len).sum();
+        groups[c] = pairs;
     }
 
     // Rotation graph over frames and scenes: world_from_scene = W_k · X_c · P.
@@ -420,21 +512,14 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         }
     }
     let hand_eye = rot.clone();
-    let (rw0, rs0) = (rw.clone(), rs.clone());
+    let start = Graph {
+        rot: rot.clone(),
+        rw: rw.clone(),
+        rs: rs.clone(),
+    };
     chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r, None);
     if (0..nc).any(|c| angle(&rot[c], &hand_eye[c]) > LINK_CONFLICT) {
-        // A scene shared between cameras turned a camera far from where its own motions
-        // put it: some link is wrong (a far tag placed with the wrong one of its two
-        // planar poses, seen once by the other camera, turned side cameras by 70° on a
-        // planar drive). Average again from the hand-eye rotations, each held by its
-        // motion pairs, with every link weighed by how well it agrees.
-        let prior: Vec<(Mat3, f64)> = hand_eye
-            .iter()
-            .zip(&pairs_of)
-            .map(|(r, &n)| (*r, n as f64))
-            .collect();
-        (rot, rw, rs) = (hand_eye, rw0, rs0);
-        chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r, Some(&prior));
+        Graph { rot, rw, rs } = relink(&edges, &groups, Graph { rot, rw, rs }, start, base, r);
     }
 
     // Translations: unknowns [t_X (cams ≠ ref) | t_W (frames ≠ base) | t_S (scenes)].
@@ -690,7 +775,7 @@ mod tests {
             1,
             pose(wrong * x1.transpose() * frames[3].transpose() * scenes[0]),
         ));
-        let run = |prior: Option<&[(Mat3, f64)]>| {
+        let run = |prior: Option<&[Mat3]>| {
             let mut rot = truth.to_vec();
             let mut rw: Vec<Option<Mat3>> = frames.iter().map(|w| Some(*w)).collect();
             let mut rs: Vec<Option<Mat3>> = scenes.iter().map(|s| Some(*s)).collect();
@@ -702,8 +787,7 @@ mod tests {
             alone > 30.0,
             "the wrong link alone turned camera 1 by {alone:.1}°"
         );
-        let prior = [(Mat3::identity(), 11.0), (x1, 11.0)];
-        let held = run(Some(&prior));
+        let held = run(Some(&truth));
         assert!(
             held < 0.5,
             "held by its motions, camera 1 is {held:.2}° off"
