@@ -312,6 +312,8 @@ fn translation_misfit(groups: &[Vec<(Pose, Pose)>], x: &Mat3) -> f64 {
     }
     match a.clone().svd(true, true).solve(&b, 1e-9) {
         Ok(sol) => (a * sol - b).norm_squared(),
+        // Only refused when U or V was not computed, and both are: a rotation that cannot
+        // be judged explains nothing.
         Err(_) => f64::INFINITY,
     }
 }
