@@ -258,8 +258,9 @@ fn planar_rotation(groups: &[Vec<(Pose, Pose)>]) -> Option<Mat3> {
     Some(so3::exp(&(a * phi)) * r0)
 }
 
-/// A camera the shared scenes turn this far (rad) from its hand-eye rotation has a wrong
-/// link: the hand-eye turn about a planar axis is off by 1-3° at 1 px of corner noise.
+/// A camera the shared scenes turn this far (rad) from its hand-eye rotation has a link
+/// that disagrees with its motions ([`relink`] decides which is right): the hand-eye
+/// turn about a planar axis is off by 1-3° at 1 px of corner noise.
 const LINK_CONFLICT: f64 = 10.0 * std::f64::consts::PI / 180.0;
 /// Scale (rad) of the Cauchy weight of a link in the robust average.
 const LINK_SCALE: f64 = 3.0 * std::f64::consts::PI / 180.0;
@@ -513,14 +514,13 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
             break;
         }
     }
-    let hand_eye = rot.clone();
     let start = Graph {
         rot: rot.clone(),
         rw: rw.clone(),
         rs: rs.clone(),
     };
     chordal_refinement(&edges, &mut rot, &mut rw, &mut rs, base, r, None);
-    if (0..nc).any(|c| angle(&rot[c], &hand_eye[c]) > LINK_CONFLICT) {
+    if (0..nc).any(|c| angle(&rot[c], &start.rot[c]) > LINK_CONFLICT) {
         Graph { rot, rw, rs } = relink(&edges, &groups, Graph { rot, rw, rs }, start, base, r);
     }
 
