@@ -222,6 +222,11 @@ fn chains(img: &Gray, lens: Lens, pts: &[RidgePoint]) -> Vec<Chain> {
 /// chain is a curve, a blob or texture, not (only) a printed line.
 const MAX_CHAIN_RMS: f64 = 0.6;
 
+/// RMS distance (px) of `pts` from `line`.
+fn rms_from(line: &Vec3, pts: &[Vec2]) -> f64 {
+    (pts.iter().map(|q| distance(line, q).powi(2)).sum::<f64>() / pts.len().max(1) as f64).sqrt()
+}
+
 /// The straight pieces of one linked chain, pushed onto `out`. Linking follows normals
 /// that turn by under 6° per pixel, so a chain can bend: at the short stub a stroke
 /// leaves beyond its last crossing, where the end and the crossing line both pull the
@@ -238,13 +243,7 @@ fn straight_pieces(points: Vec<RidgePoint>, ideal: Vec<Vec2>, out: &mut Vec<Chai
         let Some(line) = fit_line(&ideal) else {
             continue;
         };
-        let rms = (ideal
-            .iter()
-            .map(|q| distance(&line, q).powi(2))
-            .sum::<f64>()
-            / ideal.len() as f64)
-            .sqrt();
-        if rms <= MAX_CHAIN_RMS {
+        if rms_from(&line, &ideal) <= MAX_CHAIN_RMS {
             let mut s: Vec<f32> = points.iter().map(|p| p.strength).collect();
             s.sort_by(f32::total_cmp);
             out.push(Chain {
@@ -704,8 +703,7 @@ mod tests {
         }
         let points: Vec<RidgePoint> = pts.iter().map(|&p| point(p, Vec2::y())).collect();
         let whole = fit_line(&pts).unwrap();
-        let rms = (pts.iter().map(|q| distance(&whole, q).powi(2)).sum::<f64>() / pts.len() as f64)
-            .sqrt();
+        let rms = rms_from(&whole, &pts);
         assert!(
             rms > MAX_CHAIN_RMS,
             "the whole chain is a curve ({rms:.2} px)"
@@ -719,14 +717,7 @@ mod tests {
         assert!(on_line >= 55, "{on_line} of 60 straight points kept");
         assert!(longest.ideal.iter().all(|q| (q.y - 100.0).abs() < 1.0));
         for c in &out {
-            let rms = (c
-                .ideal
-                .iter()
-                .map(|q| distance(&c.line, q).powi(2))
-                .sum::<f64>()
-                / c.ideal.len() as f64)
-                .sqrt();
-            assert!(rms <= MAX_CHAIN_RMS);
+            assert!(rms_from(&c.line, &c.ideal) <= MAX_CHAIN_RMS);
         }
     }
 
