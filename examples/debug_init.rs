@@ -15,10 +15,10 @@ fn main() {
     let t = rigcal_calib::trajectory::estimate(&s, &lm).expect("trajectories");
     for (i, sc) in t.scenes.iter().enumerate() {
         println!(
-            "scene {i}: {} poses, {} points, metric {}, part_of {:?}",
+            "scene {i}: {} poses, {} points, scale {:?}, part_of {:?}",
             sc.poses.len(),
             sc.points.len(),
-            sc.metric,
+            sc.scale,
             sc.part_of
         );
     }

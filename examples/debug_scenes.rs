@@ -6,11 +6,11 @@ fn main() {
     let t = rigcal_calib::trajectory::estimate(&s, &Default::default()).expect("trajectories");
     for (i, sc) in t.scenes.iter().enumerate() {
         println!(
-            "scene {i}: {} points, {} bodies, {} posed images, metric {}, sigma {:.3}",
+            "scene {i}: {} points, {} bodies, {} posed images, scale {:?}, sigma {:.3}",
             sc.points.len(),
             sc.bodies.len(),
             sc.poses.len(),
-            sc.metric,
+            sc.scale,
             sc.sigma_px
         );
     }

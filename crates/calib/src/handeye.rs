@@ -17,7 +17,7 @@
 //! reported.
 
 use super::motion::{classify, common_axis, MotionClass, MotionReport, MIN_ROTATION};
-use super::trajectory::Trajectories;
+use super::trajectory::{SceneScale, Trajectories};
 use nalgebra::{DMatrix, DVector};
 use rigcal_core::geometry::{so3, Mat3, Pose, Vec3};
 use rigcal_core::session::Session;
@@ -548,30 +548,37 @@ pub fn initialise(session: &Session, traj: &Trajectories) -> Result<InitOutput, 
         .collect();
     let nfw = frame_col.iter().flatten().count();
     let scene_col = |s: usize| ncx + nfw + s;
-    // Every scene's scale is an unknown factor on its poses, solved with the rest
-    // whenever some scene is metric. A scene without measured distances (the rest of a
-    // long chain split off) has no other scale. A measured scene's is only as good as
-    // the triangulation of the few points its distances join (1-2 % at 1 px on the car
-    // presets, i.e. several centimetres on a camera 4 m from its scene's origin, which
-    // the rotations then bent to absorb); the rig's rigid motion ties the scales of all
-    // scenes together, so only their mean is taken from the distances (one row below).
-    let any_metric = traj.scenes.iter().any(|s| s.metric && !s.poses.is_empty());
+    // A scene of known geometry (boards, tags) is in metres: its poses are used as they
+    // are. Every other scene's scale is an unknown factor on its poses, solved with the
+    // rest whenever some scene is metric. A scene split off a long chain has no scale
+    // but the one the rig's motions give it. A scene scaled by measured distances is
+    // only as good as the triangulation of the few points they join (1-2 % at 1 px on
+    // the car presets, i.e. several centimetres on a camera 4 m from its scene's origin,
+    // which the rotations then bent to absorb); the rig's rigid motion ties the scales
+    // of all scenes together, so only their mean is taken from the distances (one row
+    // below).
+    let any_metric = traj
+        .scenes
+        .iter()
+        .any(|s| s.scale.is_metric() && !s.poses.is_empty());
     let scale_col: Vec<Option<usize>> = traj
         .scenes
         .iter()
         .scan(0, |n, sc| {
-            Some(if any_metric && !sc.poses.is_empty() {
-                *n += 1;
-                Some(3 * (ncx + nfw + ns) + *n - 1)
-            } else {
-                None
-            })
+            Some(
+                if any_metric && !sc.poses.is_empty() && sc.scale != SceneScale::Bodies {
+                    *n += 1;
+                    Some(3 * (ncx + nfw + ns) + *n - 1)
+                } else {
+                    None
+                },
+            )
         })
         .collect();
     let metric_scale_cols: Vec<usize> = scale_col
         .iter()
         .zip(&traj.scenes)
-        .filter(|(_, sc)| sc.metric && sc.part_of.is_none())
+        .filter(|(_, sc)| sc.scale == SceneScale::Distances)
         .filter_map(|(k, _)| *k)
         .collect();
     let dim = 3 * (ncx + nfw + ns) + scale_col.iter().flatten().count();

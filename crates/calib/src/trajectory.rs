@@ -29,14 +29,36 @@ pub struct SceneRecon {
     pub bodies: BTreeMap<usize, Pose>,
     /// `cam_from_scene` of every image that sees the scene and could be posed.
     pub poses: BTreeMap<ImageKey, Pose>,
-    /// Whether the scale is metric (bodies, or measured distances).
-    pub metric: bool,
+    /// Where the scene's metric scale comes from, if anywhere.
+    pub scale: SceneScale,
     /// Robust pixel noise σ of the scene bundle adjustment (median-based, so a few
     /// gross outliers do not inflate it).
     pub sigma_px: f64,
     /// The scene this one was split from (the part a long chain could not reach); its
     /// scale comes from the motions it shares with that scene, not from distances.
     pub part_of: Option<usize>,
+}
+
+/// Where a scene's metric scale comes from. The initialisation trusts each differently:
+/// known geometry fixes a scale, measured distances hold it only as well as the
+/// triangulation of the points they join, a borrowed scale is only a starting value.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SceneScale {
+    /// Rigid bodies of known geometry (boards, tags of known size).
+    Bodies,
+    /// Measured distances between reconstructed points (`scale[]`).
+    Distances,
+    /// A split-off rest brought to metres through the camera motions it shares with a
+    /// metric scene ([`scale_from_shared_motion`]).
+    SharedMotion,
+    /// No scale: the scene is in the arbitrary units of its reconstruction.
+    Unknown,
+}
+
+impl SceneScale {
+    pub fn is_metric(self) -> bool {
+        self != SceneScale::Unknown
+    }
 }
 
 #[derive(Clone, Debug)]
@@ -159,8 +181,11 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
         match reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses) {
             Ok(mut r) => {
                 r.part_of = part_of;
-                if is_rest && !r.metric {
-                    r.metric = scale_from_shared_motion(&mut r, scenes.iter().flatten());
+                if is_rest
+                    && r.scale == SceneScale::Unknown
+                    && scale_from_shared_motion(&mut r, scenes.iter().flatten())
+                {
+                    r.scale = SceneScale::SharedMotion;
                 }
                 if reference_poses.is_empty() {
                     reference_poses = r
@@ -211,7 +236,7 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 points: BTreeMap::new(),
                 bodies: BTreeMap::new(),
                 poses: BTreeMap::new(),
-                metric: false,
+                scale: SceneScale::Unknown,
                 sigma_px: f64::NAN,
                 part_of: None,
             })
@@ -233,7 +258,7 @@ fn scale_from_shared_motion<'a>(
     metric: impl Iterator<Item = &'a SceneRecon>,
 ) -> bool {
     let mut ratios = Vec::new();
-    for m in metric.filter(|m| m.metric) {
+    for m in metric.filter(|m| m.scale.is_metric()) {
         let shared: Vec<&ImageKey> = r.poses.keys().filter(|k| m.poses.contains_key(k)).collect();
         for (i, a) in shared.iter().enumerate() {
             for b in &shared[i + 1..] {
@@ -463,7 +488,11 @@ fn reconstruct_scene(
                 points: x,
                 bodies,
                 poses: p,
-                metric: m,
+                scale: if m {
+                    SceneScale::Distances
+                } else {
+                    SceneScale::Unknown
+                },
                 sigma_px: sigma,
                 part_of: None,
             });
@@ -484,7 +513,13 @@ fn reconstruct_scene(
         points,
         bodies,
         poses,
-        metric,
+        scale: if has_bodies {
+            SceneScale::Bodies
+        } else if metric {
+            SceneScale::Distances
+        } else {
+            SceneScale::Unknown
+        },
         sigma_px,
         part_of: None,
     })
@@ -1037,12 +1072,12 @@ fn refine_scene(
 mod tests {
     use super::*;
 
-    fn scene(poses: &[(ImageKey, Pose)], metric: bool) -> SceneRecon {
+    fn scene(poses: &[(ImageKey, Pose)], scale: SceneScale) -> SceneRecon {
         SceneRecon {
             points: BTreeMap::from([(0, Vec3::new(1.0, 2.0, 3.0))]),
             bodies: BTreeMap::new(),
             poses: poses.iter().copied().collect(),
-            metric,
+            scale,
             sigma_px: 1.0,
             part_of: None,
         }
@@ -1061,7 +1096,7 @@ mod tests {
         let other_frame = Pose::from_rotvec(Vec3::new(0.2, -0.1, 0.4), Vec3::new(1.0, 2.0, 3.0));
         let metric = scene(
             &[((3, 1), cam(3)), ((4, 1), cam(4)), ((5, 1), cam(5))],
-            true,
+            SceneScale::Distances,
         );
         let shrink = |p: Pose| {
             let q = p * other_frame;
@@ -1073,13 +1108,13 @@ mod tests {
                 ((4, 1), shrink(cam(4))),
                 ((5, 1), shrink(cam(5))),
             ],
-            false,
+            SceneScale::Unknown,
         );
         rest.points.insert(0, Vec3::new(0.4, 0.8, 1.2));
         assert!(scale_from_shared_motion(&mut rest, [&metric].into_iter()));
         assert!((rest.points[&0] - Vec3::new(1.0, 2.0, 3.0)).norm() < 1e-12);
         // Nothing shared: no scale, scene untouched.
-        let mut alone = scene(&[((7, 2), cam(7)), ((8, 2), cam(8))], false);
+        let mut alone = scene(&[((7, 2), cam(7)), ((8, 2), cam(8))], SceneScale::Unknown);
         assert!(!scale_from_shared_motion(&mut alone, [&metric].into_iter()));
         assert_eq!(alone.points[&0], Vec3::new(1.0, 2.0, 3.0));
     }

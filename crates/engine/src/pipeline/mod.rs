@@ -400,7 +400,7 @@ pub fn calibrate_with(
         // The split-off rest of a measured scene takes its scale from the rig (solved
         // in the initialisation with the rest); only a scene no distance was ever
         // measured in lacks one.
-        if !scene.poses.is_empty() && !scene.metric && scene.part_of.is_none() {
+        if !scene.poses.is_empty() && !scene.scale.is_metric() && scene.part_of.is_none() {
             reasons.push(reason(ReasonCode::ScaleMissing, "a scene of unknown geometry has no measured distance (scale[]): its scale comes from the rig motion only", None));
             break;
         }
