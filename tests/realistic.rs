@@ -158,15 +158,15 @@ async fn a_rendered_hall_capture_calibrates_through_the_service() {
 /// cameras 70-100° about the plane normal away from where their own 13 motions put
 /// them, and the rig adjustment ended `failed` (`inconsistent_rig`, 3-60 px). The
 /// robust average from the hand-eye rotations now competes with the plain one, and the
-/// rotations that explain the motions' translations win: `degraded` (`planar_motion`)
-/// with every rotation right. The other way round, on the U-turn hall (seed 1014), the
+/// rotations that explain the motions' translations win, every rotation right (and the
+/// tags then link the cameras' heights: `succeeded`). The other way round, on the U-turn hall (seed 1014), the
 /// right camera's hand-eye rotation is 12° off and the scene it shares along the drive
 /// is right: that must still win (`succeeded`).
 #[test]
 fn a_wrong_link_between_cameras_does_not_turn_a_planar_rig() {
     for (preset, seed, status) in [
-        ("car-hall-planar", 1000, Status::Degraded),
-        ("car-hall-planar", 1001, Status::Degraded),
+        ("car-hall-planar", 1000, Status::Succeeded),
+        ("car-hall-planar", 1001, Status::Succeeded),
         ("car-hall", 1014, Status::Succeeded),
     ] {
         let (session, truth) = synthetic_session(preset, seed, 0.1).unwrap();
@@ -204,4 +204,43 @@ fn scenes_split_off_a_chain_of_boards_keep_their_metric_scale() {
             cam.id
         );
     }
+}
+
+/// A planar S-curve whose cameras share only small wall tags (seed 1005, 0.1 px): each
+/// has two planar poses that fit, no scene places them, and every camera's height
+/// relative to the front one was held at 0 (`degraded`, 200-225 mm off). With the
+/// rig's rotations known, the orientation that views from different cameras agree on
+/// places each tag, and the tags link the heights: `succeeded`, every camera within a
+/// few times the bound (Cramér–Rao 0.46 mm RMS on these drives). Where no target at
+/// all is shared between the front pair and the rear pair (seed 1011), their relative
+/// height stays unobservable and is held and said so.
+#[test]
+fn cameras_that_share_only_small_tags_are_linked_by_the_rig() {
+    let (session, truth) = synthetic_session("car-hall-planar", 1005, 0.1).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    assert_eq!(doc.status, Status::Succeeded, "{:?}", doc.reasons);
+    for (c, cam) in session.cameras.iter().enumerate() {
+        let est = ExtrinsicValue::pose(&doc.extrinsics[c].value);
+        let e = error6(&est, &truth.ref_from_cam[&cam.id]);
+        let (mm, deg) = (e.rows(0, 3).norm() * 1e3, e.rows(3, 3).norm().to_degrees());
+        // Measured 0.22-0.58 mm, 0.0008-0.0025°.
+        assert!(
+            mm < 2.0 && deg < 0.02,
+            "{} off by {mm:.3} mm, {deg:.4}°",
+            cam.id
+        );
+    }
+
+    let (session, _) = synthetic_session("car-hall-planar", 1011, 0.1).unwrap();
+    let doc = calibrate(&session, &CalibOptions::default());
+    assert_eq!(doc.status, Status::Degraded, "{:?}", doc.reasons);
+    let held: Vec<&str> = doc
+        .singularity
+        .as_ref()
+        .unwrap()
+        .unobservable_directions
+        .iter()
+        .flat_map(|d| d.components.iter().map(|c| c.camera.as_str()))
+        .collect();
+    assert_eq!(held, ["rear", "right"]);
 }

@@ -11,7 +11,7 @@ use nalgebra::{DMatrix, DVector};
 use rigcal_core::geometry::Vec3;
 use rigcal_core::result::*;
 use rigcal_core::session::Session;
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 
 /// A direction is unobservable when its 1-σ (at ≥ 0.1 px noise) exceeds this many
 /// metres (translation) or radians (rotation), or its eigenvalue is numerically zero.
@@ -61,29 +61,11 @@ pub fn planar_height_directions(
         return vec![];
     }
     let n = Vec3::from(init.motion.axis).normalize();
-    let nc = init.ref_from_cam.len();
-    let mut group: Vec<usize> = (0..nc).collect();
-    fn root(g: &mut [usize], mut i: usize) -> usize {
-        while g[i] != i {
-            g[i] = g[g[i]];
-            i = g[i];
-        }
-        i
-    }
-    for scene in &traj.scenes {
-        let seen: BTreeSet<usize> = scene.poses.keys().map(|&(_, c)| c).collect();
-        let mut it = seen.into_iter();
-        if let Some(first) = it.next() {
-            for c in it {
-                let (a, b) = (root(&mut group, first), root(&mut group, c));
-                group[a] = b;
-            }
-        }
-    }
-    let fixed = root(&mut group, reference);
+    let group = traj.linked_cameras(init.ref_from_cam.len());
+    let fixed = group[reference];
     let mut by_group: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
     for (i, &c) in cams.iter().enumerate() {
-        let g = root(&mut group, c);
+        let g = group[c];
         if g != fixed {
             by_group.entry(g).or_default().push(i);
         }

@@ -3,6 +3,7 @@
 pub mod check;
 pub mod diagnostics;
 pub mod handeye;
+pub mod link;
 pub mod motion;
 pub mod pnp;
 pub mod rig_ba;

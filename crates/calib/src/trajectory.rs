@@ -71,6 +71,30 @@ pub struct Trajectories {
 }
 
 impl Trajectories {
+    /// The cameras linked through scenes they share, directly or through others: a
+    /// label per camera (of `n_cameras`), equal for linked cameras.
+    pub fn linked_cameras(&self, n_cameras: usize) -> Vec<usize> {
+        fn root(g: &mut [usize], mut i: usize) -> usize {
+            while g[i] != i {
+                g[i] = g[g[i]];
+                i = g[i];
+            }
+            i
+        }
+        let mut group: Vec<usize> = (0..n_cameras).collect();
+        for scene in &self.scenes {
+            let seen: BTreeSet<usize> = scene.poses.keys().map(|&(_, c)| c).collect();
+            let mut it = seen.into_iter();
+            if let Some(first) = it.next() {
+                for c in it {
+                    let (a, b) = (root(&mut group, first), root(&mut group, c));
+                    group[a] = b;
+                }
+            }
+        }
+        (0..n_cameras).map(|c| root(&mut group, c)).collect()
+    }
+
     /// Median of the reconstructed scenes' robust pixel σ: the noise level the data
     /// show before any rig constraint is imposed.
     pub fn median_scene_sigma(&self) -> Option<f64> {

@@ -4,6 +4,7 @@
 
 use rigcal_calib::diagnostics::{axis_unobservable, lost_dof, observability, residual_report};
 use rigcal_calib::handeye::{initialise, InitError};
+use rigcal_calib::link::link_cameras_through_tags;
 use rigcal_calib::motion::MotionClass;
 use rigcal_calib::rig_ba::{refine, RigBaOptions};
 use rigcal_calib::trajectory;
@@ -408,7 +409,7 @@ pub fn calibrate_with(
 
     enter(progress, "initialisation")?;
     let t = Instant::now();
-    let init = match initialise(session, &traj) {
+    let mut init = match initialise(session, &traj) {
         Ok(i) => i,
         Err(e) => {
             let cam = match &e {
@@ -422,6 +423,29 @@ pub fn calibrate_with(
             return Ok(failed(session, reasons, stages));
         }
     };
+    // Under planar motion, cameras that share no scene have unobservable relative
+    // heights; tags both see but no scene could place (two planar poses fit) may link
+    // them once the rig's rotations are known. Under general motion the motions
+    // determine every extrinsic, and such a link would add little and risk much.
+    let mut traj = traj;
+    if init.motion.class == MotionClass::Planar {
+        if let Some(linked) = link_cameras_through_tags(session, &traj, &init) {
+            // The same cameras and frames are posed as before, only linked further: an
+            // initialisation that succeeded cannot fail on them.
+            match initialise(session, &linked) {
+                Ok(i) => init = i,
+                Err(e) => {
+                    reasons.push(reason(
+                        ReasonCode::InternalError,
+                        format!("internal error in the initialisation: it failed once tags linked the cameras ({e}), although it succeeded before; this is a bug of rigcal, not of the capture"),
+                        None,
+                    ));
+                    return Ok(failed(session, reasons, stages));
+                }
+            }
+            traj = linked;
+        }
+    }
     stages.push(Stage {
         name: "initialisation".into(),
         seconds: t.elapsed().as_secs_f64(),
