@@ -30,6 +30,9 @@ use std::collections::{BTreeMap, BTreeSet};
 /// cameras pointing different ways both see.
 const AGREE_DEG: f64 = 8.0;
 
+/// A tag's corners in one image: their coordinates on the tag and in the image.
+type Corners = (Vec<Vec3>, Vec<Vec2>);
+
 /// A view of a tag: its image, the tag's corners, and its two planar poses.
 struct View {
     key: ImageKey,
@@ -95,7 +98,7 @@ pub fn link_cameras_through_tags(
         .flat_map(|(s, sc)| sc.bodies.keys().map(move |b| (*b, s)))
         .collect();
     // Corners of every body, per image of a posed rig frame.
-    let mut seen: BTreeMap<usize, BTreeMap<ImageKey, (Vec<Vec3>, Vec<Vec2>)>> = BTreeMap::new();
+    let mut seen: BTreeMap<usize, BTreeMap<ImageKey, Corners>> = BTreeMap::new();
     for (f, frame) in session.frames.iter().enumerate() {
         if init.world_from_rig[f].is_none() {
             continue;
