@@ -177,26 +177,35 @@ pub fn complete(
             }
         }
     }
-    // Grow from the accepted tags to their neighbours until nothing more is found.
-    let mut tried = std::collections::HashSet::new();
+    // Grow from the accepted tags to their neighbours until nothing more is found. A tag
+    // is tried again when it has gained found neighbours: a prediction extrapolated from
+    // two tags (a board cut by the border, found a corner at a time) can miss by more
+    // than the reach of a 12 px tag's sides, and the same tag predicted from the
+    // neighbours found since lands on it.
+    let mut tried: std::collections::HashMap<u32, usize> = std::collections::HashMap::new();
+    let neighbours = |found: &BTreeMap<u32, Found>, id: u32| -> usize {
+        let Some((r, c)) = layout.cell_of(id) else {
+            return 0;
+        };
+        found
+            .keys()
+            .filter(|&&o| {
+                layout
+                    .cell_of(o)
+                    .is_some_and(|(ro, co)| ro.abs_diff(r) <= 1 && co.abs_diff(c) <= 1)
+            })
+            .count()
+    };
     loop {
         let mut added = false;
-        let frontier: Vec<u32> = layout
+        let frontier: Vec<(u32, usize)> = layout
             .ids()
-            .filter(|id| !found.contains_key(id) && !tried.contains(id))
-            .filter(|&id| {
-                let Some((r, c)) = layout.cell_of(id) else {
-                    return false;
-                };
-                found.keys().any(|&o| {
-                    layout
-                        .cell_of(o)
-                        .is_some_and(|(ro, co)| ro.abs_diff(r) <= 1 && co.abs_diff(c) <= 1)
-                })
-            })
+            .filter(|id| !found.contains_key(id))
+            .map(|id| (id, neighbours(&found, id)))
+            .filter(|&(id, n)| n > 0 && tried.get(&id).is_none_or(|&m| n > m))
             .collect();
-        for id in frontier {
-            tried.insert(id);
+        for (id, n) in frontier {
+            tried.insert(id, n);
             let Some((r, c)) = layout.cell_of(id) else {
                 continue;
             };

@@ -245,10 +245,31 @@ pub fn detect_tags(
             ..base.clone()
         };
         let max_h = opts.quads.max_hamming;
-        let again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?
-            .into_iter()
-            .filter(|c| seedless.iter().any(|l| l.cell_of(c.id).is_some()))
+        let mut again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?;
+        // Boards of small tags (1.7-2.2 px per cell) keep their corner contacts on the
+        // image and lose their black bits on the grown copy: a search of the image
+        // upsampled 2× and grown by half a pixel seeds them (boards of 15-18 px tags:
+        // none of 36 tags on either, 15-36 there), at about the cost of one
+        // full-resolution search, only while a board has no seed.
+        let unseeded: Vec<&GridLayout> = seedless
+            .iter()
+            .copied()
+            .filter(|l| !again.iter().any(|c| l.cell_of(c.id).is_some()))
             .collect();
+        if opts.full_resolution && !unseeded.is_empty() {
+            let fine = quads::QuadOptions {
+                upsample: true,
+                decimate: 2.0,
+                grow_bright: true,
+                ..base.clone()
+            };
+            again.extend(
+                quads::detect_pixels(&px, w, h, &fine)?
+                    .into_iter()
+                    .filter(|c| unseeded.iter().any(|l| l.cell_of(c.id).is_some())),
+            );
+        }
+        again.retain(|c| seedless.iter().any(|l| l.cell_of(c.id).is_some()));
         let mut second = Vec::new();
         let found: BTreeMap<u32, grid::Found> =
             refine_candidates(img, again, lens, max_h, opts.threads, &mut second)

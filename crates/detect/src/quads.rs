@@ -39,6 +39,12 @@ pub struct QuadOptions {
     /// to its neighbours' and leaves no quad to find. It also thins black bits, so it is a
     /// second pass for boards, never the first.
     pub grow_bright: bool,
+    /// Search the image upsampled 2× (bilinear) instead, grown bright by one pixel
+    /// *there* (half a pixel of the image) when `grow_bright`, with `decimate` applied
+    /// to the upsampled copy: boards of 14-18 px tags (1.7-2.2 px per cell) keep their
+    /// corner contacts on the image and lose their black bits on the image grown by a
+    /// whole pixel; half a pixel cuts the one and keeps the other.
+    pub upsample: bool,
 }
 
 /// Segmentation contrast per unit of noise σ: the grey range over a 3×3-tile window of
@@ -55,6 +61,7 @@ impl Default for QuadOptions {
             max_hamming: 2,
             min_contrast: None,
             grow_bright: false,
+            upsample: false,
         }
     }
 }
@@ -157,17 +164,25 @@ fn detect_with(
     det.set_thread_number(1);
     det.set_decimation(opts.decimate.max(1.0));
     det.set_refine_edges(true);
-    let mut buf = apriltag::Image::zeros_with_stride(w, h, w.div_ceil(96) * 96)
+    // The C detector's input: the pixels, upsampled and/or grown as asked.
+    let upsampled;
+    let (src, sw, sh, scale) = if opts.upsample {
+        upsampled = upsample2(px, w, h);
+        (&upsampled[..], 2 * w, 2 * h, 0.5)
+    } else {
+        (px, w, h, 1.0)
+    };
+    let mut buf = apriltag::Image::zeros_with_stride(sw, sh, sw.div_ceil(96) * 96)
         .map_err(|e| format!("AprilTag image: {e}"))?;
     let stride = buf.stride();
     let dst = buf.as_slice_mut();
     if opts.grow_bright {
-        for y in 0..h {
-            grow_row(px, w, h, y, &mut dst[y * stride..y * stride + w]);
+        for y in 0..sh {
+            grow_row(src, sw, sh, y, &mut dst[y * stride..y * stride + sw]);
         }
     } else {
-        for y in 0..h {
-            dst[y * stride..y * stride + w].copy_from_slice(&px[y * w..(y + 1) * w]);
+        for y in 0..sh {
+            dst[y * stride..y * stride + sw].copy_from_slice(&src[y * sw..(y + 1) * sw]);
         }
     }
     Ok(det
@@ -175,7 +190,14 @@ fn detect_with(
         .into_iter()
         .map(|d| {
             let c = d.corners();
-            let p = |i: usize| Vec2::new(c[i][0] - C_PIXEL_OFFSET, c[i][1] - C_PIXEL_OFFSET);
+            // Upsampled pixel j (C centre j + ½) is the image's (j + ½)/2 − ½: so scale
+            // the C coordinates first, then the one convention shift.
+            let p = |i: usize| {
+                Vec2::new(
+                    c[i][0] * scale - C_PIXEL_OFFSET,
+                    c[i][1] * scale - C_PIXEL_OFFSET,
+                )
+            };
             Candidate {
                 id: d.id() as u32,
                 hamming: d.hamming() as u32,
@@ -184,6 +206,39 @@ fn detect_with(
             }
         })
         .collect())
+}
+
+/// The image upsampled 2× by bilinear interpolation, pixel centres kept: upsampled pixel
+/// `j` samples the image at `j/2 − ¼` (¾ of the nearer pixel, ¼ of the other), borders
+/// clamped.
+fn upsample2(px: &[u8], w: usize, h: usize) -> Vec<u8> {
+    // Rows first: each image row to a row of 2w, in quarters (×4, exact in u16).
+    let mut rows = vec![0u16; w * 2 * h];
+    for y in 0..h {
+        let src = &px[y * w..(y + 1) * w];
+        let dst = &mut rows[y * 2 * w..(y + 1) * 2 * w];
+        for x in 0..w {
+            let (l, m, r) = (
+                src[x.saturating_sub(1)] as u16,
+                src[x] as u16,
+                src[(x + 1).min(w - 1)] as u16,
+            );
+            dst[2 * x] = 3 * m + l;
+            dst[2 * x + 1] = 3 * m + r;
+        }
+    }
+    // Then columns, in sixteenths, rounded.
+    let w2 = 2 * w;
+    let mut out = vec![0u8; w2 * 2 * h];
+    for y in 0..h {
+        let (up, mid, down) = (y.saturating_sub(1), y, (y + 1).min(h - 1));
+        for x in 0..w2 {
+            let (u, m, d) = (rows[up * w2 + x], rows[mid * w2 + x], rows[down * w2 + x]);
+            out[2 * y * w2 + x] = ((3 * m + u + 8) / 16) as u8;
+            out[(2 * y + 1) * w2 + x] = ((3 * m + d + 8) / 16) as u8;
+        }
+    }
+    out
 }
 
 /// Maximum over each pixel and its four neighbours (a cross, not the 3×3 square: it
@@ -219,6 +274,24 @@ fn grow_row(px: &[u8], w: usize, h: usize, y: usize, out: &mut [u8]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn upsampling_keeps_levels_and_pixel_centres() {
+        // A ramp along x: the upsampled copy is the same ramp at the half-pixel
+        // positions j/2 − ¼ (inside the clamped borders), flat rows stay flat.
+        let (w, h) = (8, 3);
+        let px: Vec<u8> = (0..h)
+            .flat_map(|_| (0..w).map(|x| 10 + 20 * x as u8))
+            .collect();
+        let up = upsample2(&px, w, h);
+        for y in 0..2 * h {
+            for j in 1..2 * w - 1 {
+                let expect = 10.0 + 20.0 * (j as f64 / 2.0 - 0.25);
+                let got = up[y * 2 * w + j] as f64;
+                assert!((got - expect).abs() <= 0.5, "({j}, {y}): {got} vs {expect}");
+            }
+        }
+    }
 
     #[test]
     fn growing_bright_cuts_a_corner_contact() {
