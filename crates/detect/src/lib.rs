@@ -195,10 +195,10 @@ pub fn detect_tags(
     // small oblique ones (9 in 10 of those missed among 120 views of 24-40 px tags at up
     // to 60° were found at full resolution): a full-resolution pass adds the ids the first
     // one did not find (~10 ms on 1600×1200 with the noise-adaptive contrast floor).
-    if opts.full_resolution
+    let searched_full = opts.full_resolution
         && base.decimate > 1.0
-        && wanted.iter().any(|w| matches!(w, Wanted::Tags(..)))
-    {
+        && wanted.iter().any(|w| matches!(w, Wanted::Tags(..)));
+    if searched_full {
         let full = quads::QuadOptions {
             decimate: 1.0,
             ..base.clone()
@@ -249,14 +249,18 @@ pub fn detect_tags(
         // Boards of small tags (1.7-2.2 px per cell) keep their corner contacts on the
         // image and lose their black bits on the grown copy: a search of the image
         // upsampled 2× and grown by half a pixel seeds them (boards of 15-18 px tags:
-        // none of 36 tags on either, 15-36 there), at about the cost of one
-        // full-resolution search, only while a board has no seed.
+        // none of 36 tags on either, 15-36 there). It costs one more full-resolution
+        // segmentation and runs whenever a board has no seed, which includes every
+        // board out of view; so an image pays at most three segmentations: where the
+        // session has single tags, their plain full-resolution search (above) stands in
+        // for it (it seeds some of those boards, not all: a dense 1080p hall was 23 %
+        // slower with both, for no tag more).
         let unseeded: Vec<&GridLayout> = seedless
             .iter()
             .copied()
             .filter(|l| !again.iter().any(|c| l.cell_of(c.id).is_some()))
             .collect();
-        if opts.full_resolution && !unseeded.is_empty() {
+        if opts.full_resolution && !searched_full && !unseeded.is_empty() {
             let fine = quads::QuadOptions {
                 upsample: true,
                 decimate: 2.0,
