@@ -120,20 +120,23 @@ pub fn link_cameras_through_tags(
         if groups.len() < 2 {
             continue;
         }
-        let views = images
-            .into_iter()
-            .filter_map(|(key, (local, uv))| view(session, init, key, local, uv));
         if let Some(&s) = home.get(&body) {
-            linked |= pose_in_home(
-                &mut out.scenes[s],
-                init.world_from_scene[s],
-                body,
-                views,
-                &group,
-            );
+            // Only images the scene does not pose, from other groups than its own: the
+            // two poses of each cost a PnP.
+            let scene = &out.scenes[s];
+            let own = scene.poses.keys().next().map(|k| group[k.1]);
+            let views: Vec<View> = images
+                .into_iter()
+                .filter(|(key, _)| Some(group[key.1]) != own && !scene.poses.contains_key(key))
+                .filter_map(|(key, (local, uv))| view(session, init, key, local, uv))
+                .collect();
+            linked |= pose_in_home(&mut out.scenes[s], init.world_from_scene[s], body, views);
             continue;
         }
-        let views: Vec<View> = views.collect();
+        let views: Vec<View> = images
+            .into_iter()
+            .filter_map(|(key, (local, uv))| view(session, init, key, local, uv))
+            .collect();
         let Some(placed) = place(&views, &group) else {
             continue;
         };
@@ -152,31 +155,24 @@ pub fn link_cameras_through_tags(
     linked.then_some(out)
 }
 
-/// Poses in `scene`, which placed `body`, for the images of the tag from cameras of
-/// other groups than the scene's: the tag's pose nearest the orientation the scene
-/// gives it in the world, turned to that orientation about the tag's centroid. Returns
-/// whether any image was posed.
+/// Poses in `scene`, which placed `body`, for `views` of the tag (images from cameras of
+/// other groups than the scene's, which it does not pose): the tag's pose nearest the
+/// orientation the scene gives it in the world, turned to that orientation about the
+/// tag's centroid. Returns whether any image was posed.
 fn pose_in_home(
     scene: &mut SceneRecon,
     world_from_scene: Option<Pose>,
     body: usize,
-    views: impl Iterator<Item = View>,
-    group: &[usize],
+    views: Vec<View>,
 ) -> bool {
     let (Some(world_from_scene), Some(&scene_from_body)) =
         (world_from_scene, scene.bodies.get(&body))
     else {
         return false;
     };
-    let Some(&(_, seen_by)) = scene.poses.keys().next() else {
-        return false;
-    };
     let world_rot = world_from_scene.rot * scene_from_body.rot;
     let mut posed = false;
     for v in views {
-        if group[v.key.1] == group[seen_by] || scene.poses.contains_key(&v.key) {
-            continue;
-        }
         if let Some(c) = v.nearest(&world_rot) {
             let cam_from_body = c.turned_to(&v.local, &world_rot);
             scene
