@@ -255,12 +255,16 @@ pub fn detect_tags(
         // session has single tags, their plain full-resolution search (above) stands in
         // for it (it seeds some of those boards, not all: a dense 1080p hall was 23 %
         // slower with both, for no tag more).
-        let unseeded: Vec<&GridLayout> = seedless
-            .iter()
-            .copied()
-            .filter(|l| !again.iter().any(|c| l.cell_of(c.id).is_some()))
-            .collect();
-        if opts.full_resolution && !searched_full && !unseeded.is_empty() {
+        let unseeded: Vec<&GridLayout> = if opts.full_resolution && !searched_full {
+            seedless
+                .iter()
+                .copied()
+                .filter(|l| !again.iter().any(|c| l.cell_of(c.id).is_some()))
+                .collect()
+        } else {
+            Vec::new()
+        };
+        if !unseeded.is_empty() {
             let fine = quads::QuadOptions {
                 upsample: true,
                 decimate: 2.0,

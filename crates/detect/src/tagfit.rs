@@ -785,10 +785,7 @@ type Row = SVector<f64, 9>;
 /// it settles 0.2-2.3 px from the start and 3.3-4 px from the truth), and a shift of a
 /// whole cell would align the model's border with a row of bits.
 fn max_shift(start: &[Vec2; 4]) -> f64 {
-    let side = (0..4)
-        .map(|k| (start[(k + 1) % 4] - start[k]).norm())
-        .fold(f64::MAX, f64::min);
-    (0.8 * side / rigcal_core::target::tag36h11::WIDTH_AT_BORDER as f64).clamp(1.0, 1.5)
+    (0.8 * super::verify::cell_px(start)).clamp(1.0, 1.5)
 }
 
 /// Fit the tag `id` whose corners (raw pixels, the detector's order) are roughly `start`

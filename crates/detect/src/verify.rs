@@ -24,11 +24,15 @@ pub struct Reading {
 /// quarter cell out read an isolated bit as its neighbours (3 bit errors on every such tag
 /// of a hand-held fisheye capture, where the centre reads 0-2).
 fn sample_spread(corners: &[Vec2; 4]) -> f64 {
+    (0.5 - EDGE_CLEARANCE_PX / cell_px(corners)).clamp(0.0, 0.25)
+}
+
+/// A tag's cell (px) along its shortest side: its smallest bit in the image.
+pub(crate) fn cell_px(corners: &[Vec2; 4]) -> f64 {
     let side = (0..4)
         .map(|k| (corners[(k + 1) % 4] - corners[k]).norm())
         .fold(f64::MAX, f64::min);
-    let cell = side / WIDTH_AT_BORDER as f64;
-    (0.5 - EDGE_CLEARANCE_PX / cell).clamp(0.0, 0.25)
+    side / WIDTH_AT_BORDER as f64
 }
 
 /// Pixels a bit's samples keep from its cell's edge (≈ the blur of a sharp lens plus the
