@@ -2,7 +2,7 @@
 //! capture (a debugging aid): `cargo run --release --example debug_misses -- PRESET SEED
 //! [WxH]`. Renders every image exactly as `rigcal bench capture` does. Environment:
 //! `ONLY=f<frame>_<camera>` one image; `DUMP=DIR` writes the images with misses (and
-//! 6× crops around each miss); `TAG=<id>` prints that tag's detection; `SHOW=1` every
+//! 6× crops around each miss); `TAG=<id>` prints that tag's detection (and with `DUMP`, a 12× crop); `SHOW=1` every
 //! true corner beside the detected one; `NOFIT=1` the edge measurement alone.
 use rigcal_core::session::parse_session;
 use rigcal_detect::{detect_tags, DetectOptions};
@@ -104,6 +104,20 @@ fn main() {
         if let Ok(t) = std::env::var("TAG") {
             for d in d.tags.iter().filter(|d| d.id.to_string() == t) {
                 println!("DET {d:?}");
+                if let Some(dir) = &dump {
+                    let c = d
+                        .corners
+                        .iter()
+                        .fold([0.0, 0.0], |s, p| [s[0] + p[0] / 4.0, s[1] + p[1] / 4.0]);
+                    let (x0, y0) = (
+                        (c[0] as i64 - 20).max(0) as u32,
+                        (c[1] as i64 - 20).max(0) as u32,
+                    );
+                    let crop = image::imageops::crop_imm(&img, x0, y0, 40, 40).to_image();
+                    image::imageops::resize(&crop, 480, 480, image::imageops::FilterType::Nearest)
+                        .save(format!("{dir}/tag_f{}_{}_{t}.png", it.frame, it.camera))
+                        .unwrap();
+                }
             }
         }
         if std::env::var("SHOW").is_ok() {

@@ -307,7 +307,7 @@ pub fn detect_tags(
     }
     let mut tags = Vec::new();
     let mut points = Vec::new();
-    let mut border = Vec::new();
+    let mut dropped_corners = Vec::new();
     let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
         if opts.whole_fit_below > 0.0 {
             whole_tag_corners(
@@ -319,13 +319,13 @@ pub fn detect_tags(
                 opts.whole_fit_below,
             )
         } else {
-            f.refined.corners
+            (f.refined.corners, [None; 4])
         }
     };
     let mut emit = |target: &str,
                     id: u32,
                     f: &grid::Found,
-                    c: &[Vec2; 4],
+                    (c, unmeasured): &Measured,
                     layout: Option<&GridLayout>| {
         tags.push(TagDetection {
             target: target.to_string(),
@@ -339,12 +339,20 @@ pub fn detect_tags(
         });
         for (k, p) in c.iter().enumerate() {
             if !measured_inside(img, p) {
-                border.push(Rejection {
+                dropped_corners.push(Rejection {
                     id,
                     reason: format!(
                         "tag {id} corner {k}: within {BORDER_MARGIN} px of the image border, where its sides cannot be measured"
                     ),
                 });
+                continue;
+            }
+            if let Some(why) = unmeasured[k] {
+                let reason = match why {
+                    Unmeasured::Misfit => format!("tag {id} corner {k}: the image round it does not match the tag's surround (something in front of it?)"),
+                    Unmeasured::TooSmall => format!("tag {id} corner {k}: under {MIN_EDGE_CELL_PX} px per cell and the whole-tag fit did not settle, so its edges cannot place it"),
+                };
+                dropped_corners.push(Rejection { id, reason });
                 continue;
             }
             points.push(PointDetection {
@@ -376,13 +384,13 @@ pub fn detect_tags(
             let fitted = par_map(&completed, opts.threads, |(id, f)| {
                 finish(*id, f, Some(layout))
             });
-            let board: Vec<(u32, grid::Found, [Vec2; 4])> = completed
+            let board: Vec<(u32, grid::Found, Measured)> = completed
                 .into_iter()
                 .zip(fitted)
                 .map(|((id, f), c)| (id, f, c))
                 .collect();
             let corners: BTreeMap<u32, [Vec2; 4]> =
-                board.iter().map(|(id, _, c)| (*id, *c)).collect();
+                board.iter().map(|(id, _, c)| (*id, c.0)).collect();
             let off = grid::inconsistent(layout, &corners, lens);
             for (id, f, c) in &board {
                 match off.get(id) {
@@ -415,7 +423,7 @@ pub fn detect_tags(
     }
     // A candidate refused early and then found through the layout is not refused.
     rejected.retain(|r| !tags.iter().any(|t| t.id == r.id));
-    rejected.extend(border);
+    rejected.extend(dropped_corners);
     for id in refined.keys() {
         rejected.push(Rejection {
             id: *id,
@@ -447,9 +455,10 @@ fn measured_inside(img: &Gray, p: &Vec2) -> bool {
         && p.y <= img.height as f64 - 1.0 - BORDER_MARGIN
 }
 
-/// The corners a tag is reported with: a tag too small for the edge measurement's room
-/// is fitted whole ([`tagfit`]), from the edge-refined corners; where that fit does not
-/// settle the edge-refined corners stand.
+/// The corners a tag is reported with, and which are left out: a tag too small for the
+/// edge measurement's room is fitted whole ([`tagfit`]), from the edge-refined corners,
+/// and corners its surround misfits are left out; where that fit does not settle the
+/// edge-refined corners stand, unless the tag is too small for them.
 fn whole_tag_corners(
     img: &Gray,
     corners: &[Vec2; 4],
@@ -457,9 +466,9 @@ fn whole_tag_corners(
     id: u32,
     layout: Option<&GridLayout>,
     below: f64,
-) -> [Vec2; 4] {
+) -> Measured {
     if tagfit::shallowest_extent(corners) >= below {
-        return *corners;
+        return (*corners, [None; 4]);
     }
     let surround = match layout {
         Some(l) => tagfit::Surround::Grid {
@@ -467,8 +476,31 @@ fn whole_tag_corners(
         },
         None => tagfit::Surround::Single,
     };
-    tagfit::fit_whole_tag(img, corners, lens, id, surround).map_or(*corners, |f| f.corners)
+    match tagfit::fit_whole_tag(img, corners, lens, id, surround) {
+        Some(f) => (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
+        // Under 2 px per cell the edges can be a pixel off (a side measured against the
+        // bits beside it): without the fit such a tag has no corner worth reporting.
+        None if verify::cell_px(corners) < MIN_EDGE_CELL_PX => {
+            (*corners, [Some(Unmeasured::TooSmall); 4])
+        }
+        None => (*corners, [None; 4]),
+    }
 }
+
+/// Cell size (px) under which a tag's corners come from the whole-tag fit or not at all.
+const MIN_EDGE_CELL_PX: f64 = 2.0;
+
+/// Why a detected tag's corner is not reported.
+#[derive(Clone, Copy, Debug, PartialEq)]
+enum Unmeasured {
+    /// The image round it does not match the tag's surround ([`tagfit::WholeFit::misfit`]).
+    Misfit,
+    /// The tag is too small for its edges, and the whole-tag fit did not settle.
+    TooSmall,
+}
+
+/// A tag's reported corners, and per corner why it is left out (`None`: reported).
+type Measured = ([Vec2; 4], [Option<Unmeasured>; 4]);
 
 /// Refine every candidate whose id appears once in the image (an id seen twice is
 /// ambiguous: neither copy is used); refusals go to `rejected` with why.

@@ -179,7 +179,39 @@ pub struct WholeFit {
     pub sigma: f64,
     /// RMS grey-level residual over the tag's pixels.
     pub rms: f64,
+    /// Per corner: whether the pixels round it misfit the pattern (their RMS residual
+    /// over the robust scale of all the tag's residuals above [`MAX_CORNER_MISFIT`]).
+    pub misfit: [bool; 4],
 }
+
+/// On hand-held fisheye and vehicle captures the corners' misfit (RMS residual round a
+/// corner over the tag's robust scale) is 1.06 at the median and 1.48 at the 99th
+/// percentile; corners with a crossing square hidden by another board read 2.7-18.
+const MAX_CORNER_MISFIT: f64 = 2.2;
+
+/// Per corner, the RMS residual of the compared pixels within [`CORNER_REACH_CELLS`]
+/// of it, over the robust scale (1.4826 × median |r|) of all of them.
+fn corner_misfit(reg: &Region, c: &[Vec2; 4], lens: Lens, r: &DVector<f64>) -> Option<[f64; 4]> {
+    let hinv = pattern_to_plane(c, lens)?.try_inverse()?;
+    let mut abs: Vec<f64> = r.iter().map(|x| x.abs()).collect();
+    let mid = abs.len() / 2;
+    let scale = (1.4826 * *abs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1).max(MIN_SCALE);
+    let mut sums = [(0.0f64, 0usize); 4];
+    for (px, ri) in reg.pixels.iter().zip(r.iter()) {
+        let u = hinv * Vec3::new(px.plane.x, px.plane.y, 1.0);
+        let p = Vec2::new(u.x / u.z, u.y / u.z);
+        for (k, sum) in sums.iter_mut().enumerate() {
+            let d = p - pattern_corner(k);
+            if d.x.abs().max(d.y.abs()) <= CORNER_REACH_CELLS {
+                sum.0 += ri * ri;
+                sum.1 += 1;
+            }
+        }
+    }
+    Some(sums.map(|(sq, n)| (sq / n.max(1) as f64).sqrt() / scale))
+}
+
+const CORNER_REACH_CELLS: f64 = 1.5;
 
 /// The tag's region sampled for the model: the pixels compared, and the sub-sample grid
 /// (with each sub-sample's point in the plane where the homography acts).
@@ -222,9 +254,30 @@ const COARSE: usize = 4;
 const MAX_SIGMA: f64 = 1.5;
 const MIN_SIGMA: f64 = 0.25;
 
+/// Whether pattern point `(pu, pv)` (cells) is outside the black square in the part of
+/// the surround that corner `k`'s own neighbourhood shapes: its diagonal quadrant (a
+/// grid's crossing square) and the ring beside it within the blur's reach of that
+/// quadrant ([`SURROUND_BLUR_CELLS`]).
+fn beside_corner(k: usize, pu: f64, pv: f64) -> bool {
+    let c = pattern_corner(k);
+    let out = |x: f64, at: f64| if at == 0.0 { -x } else { x - 8.0 };
+    let (ox, oy) = (out(pu, c.x), out(pv, c.y));
+    ox > -SURROUND_BLUR_CELLS && oy > -SURROUND_BLUR_CELLS && (ox > 0.0 || oy > 0.0)
+}
+
+/// How far (cells) a missing crossing square's blur reaches into the ring beside it.
+const SURROUND_BLUR_CELLS: f64 = 0.5;
+
 /// The region of the tag with corners `corners` (raw px), sampled `sub_n` times per
-/// pixel side; `None` when it leaves the image or is implausibly large.
-fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<Region> {
+/// pixel side, without the surround of the corners `skip` names ([`beside_corner`]);
+/// `None` when a pixel it compares lies outside the image, or it is implausibly large.
+fn region(
+    img: &Gray,
+    corners: &[Vec2; 4],
+    lens: Lens,
+    sub_n: usize,
+    skip: [bool; 4],
+) -> Option<Region> {
     let m = REACH_CELLS;
     let h = pattern_to_plane(corners, lens)?;
     let hinv = h.try_inverse()?;
@@ -246,9 +299,6 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
     let y0 = lo.y.floor() as i64 - KERNEL_REACH_PX;
     let x1 = hi.x.ceil() as i64 + KERNEL_REACH_PX;
     let y1 = hi.y.ceil() as i64 + KERNEL_REACH_PX;
-    if x0 < 0 || y0 < 0 || x1 >= img.width as i64 || y1 >= img.height as i64 {
-        return None;
-    }
     let (w, hgt) = ((x1 - x0 + 1) as usize, (y1 - y0 + 1) as usize);
     if w * hgt > 200 * 200 {
         return None;
@@ -302,7 +352,21 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
             let (q, dq) = plane_at(i as f64 + 0.5, j as f64 + 0.5);
             let u = hinv * Vec3::new(q.x, q.y, 1.0);
             let (pu, pv) = (u.x / u.z, u.y / u.z);
-            if (-m..=8.0 + m).contains(&pu) && (-m..=8.0 + m).contains(&pv) {
+            if (-m..=8.0 + m).contains(&pu)
+                && (-m..=8.0 + m).contains(&pv)
+                && !(0..4).any(|k| skip[k] && beside_corner(k, pu, pv))
+            {
+                // Only the compared pixels are read: the model's margin round them
+                // (the blur's reach) is drawn from the lens, and may leave the image.
+                // So may the outer part of the ring, where the image ends; the black
+                // square and half a cell round it may not.
+                if x < 0 || y < 0 || x >= img.width as i64 || y >= img.height as i64 {
+                    let h = 0.5;
+                    if (-h..=8.0 + h).contains(&pu) && (-h..=8.0 + h).contains(&pv) {
+                        return None;
+                    }
+                    continue;
+                }
                 pixels.push(Compared {
                     idx: j * w + i,
                     grey: img.data[y as usize * img.width + x as usize] as f64,
@@ -792,6 +856,13 @@ fn max_shift(start: &[Vec2; 4]) -> f64 {
 /// (within a few tenths of a pixel). `None` when the fit does not settle, the levels make
 /// no tag (white not brighter than black), or the corners run farther than
 /// [`max_shift`].
+///
+/// A corner whose surround the pattern does not explain ([`WholeFit::misfit`]: a grid's
+/// crossing square hidden by something in front, a blot on the ring) pulls the fit by up
+/// to a pixel. The tag is then fitted again without those corners' surrounds, from its
+/// black square's own edges, for the other corners' sake: the misfit ones stay marked
+/// (freed of its surround, such a corner follows what hides it, up to a pixel on hand-held
+/// fisheye captures, while its residuals look fitted).
 pub fn fit_whole_tag(
     img: &Gray,
     start: &[Vec2; 4],
@@ -799,7 +870,27 @@ pub fn fit_whole_tag(
     id: u32,
     surround: Surround,
 ) -> Option<WholeFit> {
-    let reg = region(img, start, lens, SUB)?;
+    let first = fit_once(img, start, lens, id, surround, [false; 4])?;
+    if !first.misfit.contains(&true) {
+        return Some(first);
+    }
+    let mut second = fit_once(img, start, lens, id, surround, first.misfit)?;
+    for k in 0..4 {
+        second.misfit[k] |= first.misfit[k];
+    }
+    Some(second)
+}
+
+/// [`fit_whole_tag`] once, without the surrounds of the corners `skip` names.
+fn fit_once(
+    img: &Gray,
+    start: &[Vec2; 4],
+    lens: Lens,
+    id: u32,
+    surround: Surround,
+    skip: [bool; 4],
+) -> Option<WholeFit> {
+    let reg = region(img, start, lens, SUB, skip)?;
     if reg.pixels.len() < 64 {
         return None;
     }
@@ -836,6 +927,7 @@ pub fn fit_whole_tag(
         corners,
         sigma: (sigma * sigma + smoothing * smoothing / 12.0).sqrt(),
         rms: (cost / r.len().max(1) as f64).sqrt(),
+        misfit: corner_misfit(&reg, &corners, lens, &r)?.map(|m| m > MAX_CORNER_MISFIT),
     })
 }
 
@@ -1029,7 +1121,7 @@ mod tests {
             let img = Gray::from_luma8(&s.image);
             let lens = Lens(Some(&s.camera));
             let pat = Pattern::new(id, surround);
-            let reg = region(&img, truth, lens, 8).expect("region");
+            let reg = region(&img, truth, lens, 8, [false; 4]).expect("region");
             let mut p = Params::zeros();
             for k in 0..4 {
                 p[2 * k] = truth[k].x + 0.05 * (k as f64 - 1.5);
