@@ -220,7 +220,8 @@ const CORNER_REACH_CELLS: f64 = 1.5;
 /// The tag's region sampled for the model: the pixels compared, and the sub-sample grid
 /// (with each sub-sample's point in the plane where the homography acts).
 struct Region {
-    /// Raw-pixel position of the sub-sample grid's top-left corner.
+    /// Raw-pixel position of the sub-sample grid's top-left corner (for tests).
+    #[cfg(test)]
     origin: Vec2,
     /// Size of the pixel grid (raw pixels).
     w: usize,
@@ -402,6 +403,7 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
         *span = (span.0.min(ci), span.1.max(ci + 1));
     }
     Some(Region {
+        #[cfg(test)]
         origin,
         sub: sub_n,
         w,
