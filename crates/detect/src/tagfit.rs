@@ -194,12 +194,10 @@ pub struct WholeFit {
 const MAX_CORNER_MISFIT: f64 = 2.2;
 
 /// Per corner, the RMS residual of the compared pixels within [`CORNER_REACH_CELLS`]
-/// of it, over the robust scale (1.4826 × median |r|) of all of them.
+/// of it, over the robust scale ([`robust_scale`]) of all of them.
 fn corner_misfit(reg: &Region, c: &[Vec2; 4], lens: Lens, r: &DVector<f64>) -> Option<[f64; 4]> {
     let hinv = pattern_to_plane(c, lens)?.try_inverse()?;
-    let mut abs: Vec<f64> = r.iter().map(|x| x.abs()).collect();
-    let mid = abs.len() / 2;
-    let scale = (1.4826 * *abs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1).max(MIN_SCALE);
+    let scale = robust_scale(r);
     let mut sums = [(0.0f64, 0usize); 4];
     for (px, ri) in reg.pixels.iter().zip(r.iter()) {
         let u = hinv * Vec3::new(px.plane.x, px.plane.y, 1.0);
@@ -1033,13 +1031,19 @@ const FIT: Rules = Rules {
 /// weighs as an outlier rather than as evidence (seen: 0.08 px at a corner from two
 /// 2-3 px blots, unweighted).
 fn huber_weights(r: &DVector<f64>) -> Vec<f64> {
-    let mut abs: Vec<f64> = r.iter().map(|x| x.abs()).collect();
-    let mid = abs.len() / 2;
-    let median = *abs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
-    let c = HUBER_K * (1.4826 * median).max(MIN_SCALE);
+    let c = HUBER_K * robust_scale(r);
     r.iter()
         .map(|x| if x.abs() <= c { 1.0 } else { c / x.abs() })
         .collect()
+}
+
+/// The residuals' robust standard deviation: 1.4826 × their median absolute value, at
+/// least [`MIN_SCALE`].
+fn robust_scale(r: &DVector<f64>) -> f64 {
+    let mut abs: Vec<f64> = r.iter().map(|x| x.abs()).collect();
+    let mid = abs.len() / 2;
+    let median = *abs.select_nth_unstable_by(mid, |a, b| a.total_cmp(b)).1;
+    (1.4826 * median).max(MIN_SCALE)
 }
 
 const HUBER_K: f64 = 2.0;
