@@ -22,6 +22,9 @@ pub struct CaptureTrial {
     /// Reported corners more than 1 px from the truth.
     pub wrong_corners: usize,
     pub corner_rms_px: f64,
+    /// The residual pixel noise σ the calibration estimated (before its corner-noise
+    /// floor), so the error / σ at another floor can be read off this run.
+    pub sigma_px: f64,
     /// Worst camera: translation (mm) and rotation (deg) error.
     pub worst_t_mm: f64,
     pub worst_r_deg: f64,
@@ -132,6 +135,7 @@ pub fn capture_trials(
             } else {
                 f64::NAN
             },
+            sigma_px: doc.residuals.as_ref().map_or(f64::NAN, |r| r.sigma_px),
             worst_t_mm: worst_t,
             worst_r_deg: worst_r,
             z,
@@ -151,13 +155,14 @@ pub fn capture_trials(
 pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
     println!("preset {preset}: rendered captures through detection and calibration");
     println!(
-        "{:>6} {:>10} {:>8} {:>8} {:>6} {:>9} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
+        "{:>6} {:>10} {:>8} {:>8} {:>6} {:>9} {:>8} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
         "seed",
         "status",
         "legible",
         "found%",
         "wrong",
         "rms px",
+        "σ px",
         "worst mm",
         "worst °",
         "|z|max",
@@ -171,13 +176,14 @@ pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
         let zrms = (r.z.iter().map(|z| z * z).sum::<f64>() / r.z.len().max(1) as f64).sqrt();
         all_z.extend(r.z.iter().copied());
         println!(
-            "{:>6} {:>10} {:>8} {:>8.2} {:>6} {:>9.4} {:>9.3} {:>9.5} {:>7.2} {:>7.2} {:>7.1} {:>7.1}",
+            "{:>6} {:>10} {:>8} {:>8.2} {:>6} {:>9.4} {:>8.4} {:>9.3} {:>9.5} {:>7.2} {:>7.2} {:>7.1} {:>7.1}",
             r.seed,
             r.status,
             r.legible_tags,
             100.0 * r.found_tags as f64 / r.legible_tags.max(1) as f64,
             r.wrong_corners,
             r.corner_rms_px,
+            r.sigma_px,
             r.worst_t_mm,
             r.worst_r_deg,
             zmax,

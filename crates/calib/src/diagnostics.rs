@@ -117,7 +117,7 @@ pub struct Observability {
 }
 
 /// `sigma_floor_px`: the least corner noise the covariance assumes (see
-/// `pipeline::DETECTED_CORNER_SIGMA_FLOOR_PX`).
+/// `pipeline::detected_corner_sigma_floor_px`).
 pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observability> {
     let (cams, info) = ba.information.clone()?;
     let n = info.nrows();

@@ -32,20 +32,33 @@ pub const MAX_OUTLIER_FRACTION: f64 = 0.15;
 pub struct CalibOptions {
     pub rig_ba: RigBaOptions,
     /// Least corner noise (px) the reported uncertainty assumes, whatever the residuals
-    /// say; [`DETECTED_CORNER_SIGMA_FLOOR_PX`] for corners detected from images.
+    /// say; at least [`detected_corner_sigma_floor_px`] for corners detected from images.
     pub corner_sigma_floor_px: f64,
     /// The detection stage's quality (sessions of images).
     pub detection: DetectionQuality,
 }
 
-/// Corner noise (px) the uncertainty of a session detected from images assumes at least.
-/// On realistic renders the detector's corners scatter by 0.01 px, but part of their
-/// error is systematic — a few thousandths of a pixel that depend on the tag's size,
-/// obliquity, blur and JPEG and so repeat in every frame of a capture, where a board
-/// barely moves in the image — and frames do not average it out. With the residual σ
-/// alone the reported σ were 2-4× optimistic on the hall captures (errors up to 6σ);
-/// with this floor they cover the errors (docs/accuracy.md).
-pub const DETECTED_CORNER_SIGMA_FLOOR_PX: f64 = 0.03;
+/// Corner noise (px) the uncertainty of a session detected from images assumes at least,
+/// by detection quality. The residual σ of the rig adjustment sees each corner's
+/// scatter, not an error a tag repeats in every frame (where a board barely moves in the
+/// image, frames do not average it out), so a floor stands for that part.
+///
+/// `accurate`: on the realistic hall and fisheye renders (10-20 captures per preset)
+/// the residual σ alone gives error/σ of RMS 0.7-1.0 per preset and at most 2.9: what
+/// the detector repeats by tag is now within its scatter (~0.006 px). 0.01 px keeps a
+/// margin for what renders do not show (print flatness, a lens model a little off):
+/// error/σ RMS 0.5, at most 1.6, where 0.03 px made the σ 6× the errors
+/// (docs/accuracy.md, "The corner-noise floor").
+///
+/// `fast`: tags over 30 px keep their edge-measured corners (0.027 px RMS against the
+/// fits' 0.008), whose errors repeat by tag; at 0.03 px the hall's errors still reached
+/// 4.6 σ (measured before the whole-tag fit's fixes of 2026-12-06), so it stays.
+pub fn detected_corner_sigma_floor_px(quality: DetectionQuality) -> f64 {
+    match quality {
+        DetectionQuality::Accurate => 0.01,
+        DetectionQuality::Fast => 0.03,
+    }
+}
 
 /// The robust loss of the outlier pass by its user-facing name (CLI `--loss`, job
 /// option `loss`); its scale is given beside it.
@@ -271,7 +284,7 @@ pub fn calibrate_detected(
     let opts = &CalibOptions {
         corner_sigma_floor_px: if detected_corners {
             opts.corner_sigma_floor_px
-                .max(DETECTED_CORNER_SIGMA_FLOOR_PX)
+                .max(detected_corner_sigma_floor_px(opts.detection))
         } else {
             opts.corner_sigma_floor_px
         },
