@@ -43,12 +43,12 @@ pub struct CalibOptions {
 /// scatter, not an error a tag repeats in every frame (where a board barely moves in the
 /// image, frames do not average it out), so a floor stands for that part.
 ///
-/// `accurate`: on the realistic hall and fisheye renders (10-20 captures per preset)
-/// the residual σ alone gives error/σ of RMS 0.7-1.0 per preset and at most 2.9: what
-/// the detector repeats by tag is now within its scatter (~0.006 px). 0.01 px keeps a
-/// margin for what renders do not show (print flatness, a lens model a little off):
-/// error/σ RMS 0.5, at most 1.6, where 0.03 px made the σ 6× the errors
-/// (docs/accuracy.md, "The corner-noise floor").
+/// `accurate`: on the realistic hall and fisheye renders the residual σ alone (~0.006
+/// px) gives error/σ of RMS 0.7-1.0 per preset, but one axis in 180 of the hall at 3.4:
+/// what the detector repeats by tag is now mostly within its scatter. 0.01 px keeps a
+/// margin for that and for what renders do not show (print flatness, a lens model a
+/// little off): error/σ RMS 0.5-0.6, at most 2.3, where 0.03 px made the σ 5-6× the
+/// errors (docs/accuracy.md, "The corner-noise floor, after the fixes").
 ///
 /// `fast`: tags over 30 px keep their edge-measured corners (0.027 px RMS against the
 /// fits' 0.008), whose errors repeat by tag; at 0.03 px the hall's errors still reached
