@@ -50,9 +50,9 @@ pub struct CalibOptions {
 /// little off): error/σ RMS 0.5-0.6, at most 2.3, where 0.03 px made the σ 5-6× the
 /// errors (docs/accuracy.md, "The corner-noise floor, after the fixes").
 ///
-/// `fast`: tags over 30 px keep their edge-measured corners (0.027 px RMS against the
-/// fits' 0.008), whose errors repeat by tag; at 0.03 px the hall's errors still reached
-/// 4.6 σ (measured before the whole-tag fit's fixes of 2026-12-06), so it stays.
+/// `fast`: tags over 30 px keep their edge-measured corners (0.017-0.026 px RMS against
+/// the fits' 0.008), residual σ ~0.016 px; 0.03 px is the same ~2× margin: error/σ
+/// RMS 0.46, at most 1.76 on the hall (0.82 / 2.89 with the residual σ alone).
 pub fn detected_corner_sigma_floor_px(quality: DetectionQuality) -> f64 {
     match quality {
         DetectionQuality::Accurate => 0.01,
