@@ -246,15 +246,19 @@ pub fn detect_tags(
         };
         let max_h = opts.quads.max_hamming;
         let mut again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?;
-        // Boards of small tags (1.7-2.2 px per cell) keep their corner contacts on the
+        // Boards of small tags (1.5-2.2 px per cell) keep their corner contacts on the
         // image and lose their black bits on the grown copy: a search of the image
         // upsampled 2× and grown by half a pixel seeds them (boards of 15-18 px tags:
-        // none of 36 tags on either, 15-36 there). It costs one more full-resolution
-        // segmentation and runs whenever a board has no seed, which includes every
-        // board out of view; so an image pays at most three segmentations: where the
-        // session has single tags, their plain full-resolution search (above) stands in
-        // for it (it seeds some of those boards, not all: a dense 1080p hall was 23 %
-        // slower with both, for no tag more).
+        // none of 36 tags on either, 15-36 there). Its quads are searched at 1.5
+        // decimation of the 2× copy (the C library's 3 → 2 block average, 1.33 samples
+        // per image pixel): at 2, boards of 12-13 px tags stay unseeded (hand-held
+        // fisheye captures: a whole board of 22 such tags in one view). It costs one
+        // more segmentation, of 1.8× the image's pixels, and runs whenever a board has
+        // no seed, which includes every board out of view; so an image pays at most
+        // three segmentations: where the session has single tags, their plain
+        // full-resolution search (above) stands in for it (it seeds some of those
+        // boards, not all: a dense 1080p hall was 23 % slower with both, for no tag
+        // more).
         let unseeded: Vec<&GridLayout> = if opts.full_resolution && !searched_full {
             seedless
                 .iter()
@@ -267,7 +271,7 @@ pub fn detect_tags(
         if !unseeded.is_empty() {
             let fine = quads::QuadOptions {
                 upsample: true,
-                decimate: 2.0,
+                decimate: 1.5,
                 grow_bright: true,
                 ..base.clone()
             };
