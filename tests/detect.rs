@@ -96,7 +96,7 @@ fn aprilgrids_of_the_smallest_legible_tags_are_found_whole() {
 /// upsampled search looks for quads at 1.5 decimation of its copy, where at 2 a whole
 /// board of 22 such tags stayed unseeded in a fisheye view. Over the three lenses here
 /// (12 views): 207 of 432 tags at 1.5, 124 at 2; every tag found is right, its corners
-/// within 0.05 px. (What is left unseeded is blurred to under the segmentation's reach.)
+/// within 0.05 px.
 #[test]
 fn aprilgrids_of_tags_at_the_legibility_limit_are_seeded() {
     let (mut visible, mut found) = (0, 0);
