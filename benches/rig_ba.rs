@@ -13,7 +13,7 @@ fn main() {
 
 #[divan::bench(args = [50, 200], sample_count = 5)]
 fn rig_bundle_adjustment(bencher: divan::Bencher, poses: usize) {
-    let (p, _) = problem(6, poses, 100, 7);
+    let (p, _) = problem(6, poses, 100, 0, 7);
     bencher.with_inputs(|| p.clone()).bench_values(|mut p| {
         p.solve(&LmOptions {
             max_iterations: 50,

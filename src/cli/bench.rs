@@ -136,6 +136,10 @@ pub enum Command {
         poses: Vec<usize>,
         #[arg(long, default_value_t = 100, value_parser = RangedU64ValueParser::<usize>::new().range(10..))]
         points: usize,
+        /// Each scene seen by this many consecutive rig poses only, a new one every
+        /// half window (0: every point in every frame).
+        #[arg(long, default_value_t = 0)]
+        window: usize,
         /// Also write each problem with rigcal's result as `ba_K.json` here, for
         /// `benches/peers/colmap_ba.py`.
         #[arg(long)]
@@ -326,9 +330,10 @@ pub fn run(c: Command) -> Result<i32> {
             cameras,
             poses,
             points,
+            window,
             export,
         } => {
-            let rows = rigcal_bench::speed::run(cameras, &poses, points, export.as_deref())
+            let rows = rigcal_bench::speed::run(cameras, &poses, points, window, export.as_deref())
                 .context("writing the exported problems")?;
             rigcal_bench::speed::print_table(cameras, points, &rows);
             Ok(0)

@@ -1,6 +1,9 @@
 //! Speed of the rig bundle adjustment on the benchmark rig of issue 2: `cameras`
 //! cameras on a ring looking outwards, `poses` rig poses of general 3D motion, `points`
 //! points per camera scene, 0.5 px noise; the solve starts from a perturbed truth.
+//! With a window of W frames, each scene is seen only by W consecutive rig poses, and a
+//! new scene begins every W/2 frames (as along a drive past targets): the reduced system
+//! is then a band, the case for the sparse factorisation.
 
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -8,11 +11,13 @@ use rand_distr::{Distribution, Normal};
 use rigcal_core::geometry::{Camera, Pose, Vec2, Vec3};
 use rigcal_solve::bundle::{BundleProblem, BundleSummary, LmOptions, Obs, PointRef};
 
-/// Build the benchmark problem (already perturbed) and its truth extrinsics.
+/// Build the benchmark problem (already perturbed) and its truth extrinsics; `window`
+/// 0: every point in every frame.
 pub fn problem(
     cameras: usize,
     poses: usize,
     points: usize,
+    window: usize,
     seed: u64,
 ) -> (BundleProblem, Vec<Pose>) {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -51,16 +56,31 @@ pub fn problem(
             Pose::from_rotvec(w, t)
         })
         .collect();
+    // Scenes: (first frame, last frame + 1) of the rig poses that see them.
+    let scenes: Vec<(usize, usize)> = if window == 0 || window >= poses {
+        vec![(0, poses)]
+    } else {
+        let step = (window / 2).max(1);
+        (0..poses)
+            .step_by(step)
+            .map(|s| (s, (s + window).min(poses)))
+            .take_while(|&(s, _)| s == 0 || s + step < poses)
+            .collect()
+    };
     let mut world_points = Vec::new();
-    for c in &ref_from_cam {
-        for _ in 0..points {
-            let z = rng.gen_range(3.0..6.0);
-            let p = Vec3::new(
-                rng.gen_range(-0.5..0.5) * z,
-                rng.gen_range(-0.4..0.4) * z,
-                z,
-            );
-            world_points.push(c.apply(&p));
+    let mut seen_by = Vec::new();
+    for &frames in &scenes {
+        for c in &ref_from_cam {
+            for _ in 0..points {
+                let z = rng.gen_range(3.0..6.0);
+                let p = Vec3::new(
+                    rng.gen_range(-0.5..0.5) * z,
+                    rng.gen_range(-0.4..0.4) * z,
+                    z,
+                );
+                world_points.push(c.apply(&p));
+                seen_by.push(frames);
+            }
         }
     }
     let noise = Normal::new(0.0, 0.5).expect("finite");
@@ -69,6 +89,9 @@ pub fn problem(
         for (c, x) in ref_from_cam.iter().enumerate() {
             let cam_from_world = (*w * *x).inverse();
             for (i, p) in world_points.iter().enumerate() {
+                if !(seen_by[i].0..seen_by[i].1).contains(&k) {
+                    continue;
+                }
                 let q = cam_from_world.apply(p);
                 if let Some(uv) = cam.project(&q) {
                     if cam.in_image(&uv) && q.z > 0.5 {
@@ -157,12 +180,13 @@ pub fn run(
     cameras: usize,
     poses: &[usize],
     points: usize,
+    window: usize,
     export: Option<&std::path::Path>,
 ) -> std::io::Result<Vec<SpeedRow>> {
     poses
         .iter()
         .map(|&k| {
-            let (mut p, truth) = problem(cameras, k, points, 7);
+            let (mut p, truth) = problem(cameras, k, points, window, 7);
             let start = export.map(|_| state_json(&p));
             let options = bench_options();
             let summary = p.solve(&options);

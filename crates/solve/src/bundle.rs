@@ -14,6 +14,7 @@
 
 use super::lm::{self, Damping, LeastSquares, NormalEquations, Rules, Termination};
 use super::loss::Loss;
+use super::sparse::SparsePattern;
 use faer::linalg::matmul::triangular::{self, BlockStructure};
 use faer::Accum;
 use nalgebra::{DMatrix, DVector, Matrix2x3, Matrix6, SMatrix, Vector6};
@@ -1326,6 +1327,9 @@ struct Workspace {
     reduced: Option<DMatrix<f64>>,
     /// The dense rows of the Schur complement ([`DenseRows`]), all zero between uses.
     rows: Vec<f64>,
+    /// The reduced system's pattern when it is factored sparse ([`sparse_pattern`]),
+    /// decided at the first damped solve (`Some(None)`: dense).
+    sparse: Option<Option<SparsePattern>>,
 }
 
 impl<'a> LeastSquares for RigFit<'a> {
@@ -1402,6 +1406,16 @@ impl NormalEquations for Reduced<'_> {
         let mut own = Workspace::default();
         let mut shared = self.workspace.map(|w| w.borrow_mut());
         let work = shared.as_deref_mut().unwrap_or(&mut own);
+        let einv = damped_inverses(layout, n, lambda, floor)?;
+        let pattern = work.sparse.get_or_insert_with(|| sparse_pattern(layout, n));
+        if let Some(dr) = pattern
+            .as_ref()
+            .and_then(|p| sparse_reduced_step(p, layout, n, &einv, lambda, floor))
+        {
+            let dr = dr?;
+            let de = back_substitute(layout, n, &einv, &dr);
+            return Some((dr, de));
+        }
         let mut s = match work.reduced.take() {
             Some(mut s) if s.nrows() == nr => {
                 n.hrr.write_into(&mut s, layout);
@@ -1413,18 +1427,6 @@ impl NormalEquations for Reduced<'_> {
             s[(i, i)] += lambda * n.hrr.diag[i].max(floor);
         }
         let mut rhs = -n.gr.clone();
-        let einv: Vec<Matrix6<f64>> = n
-            .hee
-            .par_iter()
-            .zip(&layout.elim_size)
-            .map(|(hee, &size)| {
-                let mut h = *hee;
-                for i in 0..size {
-                    h[(i, i)] += lambda * hee[(i, i)].max(floor);
-                }
-                invert_block(&h, size)
-            })
-            .collect::<Option<_>>()?;
         schur_complement(&mut s, Some(&mut rhs), layout, n, &einv, &mut work.rows);
         let dr = if nr > 0 {
             solve_lower(&mut s, rhs)
@@ -1433,18 +1435,7 @@ impl NormalEquations for Reduced<'_> {
         };
         work.reduced = Some(s);
         let dr = dr?;
-        let mut de = Vec::with_capacity(n.hee.len());
-        for (e, inv) in einv.iter().enumerate() {
-            let mut b = -n.ge[e];
-            let ze = layout.elim_size[e];
-            for (h, (oa, za)) in n.her[e].iter(&layout.couplings[e]) {
-                for k in 0..ze {
-                    let v: f64 = (0..za).map(|j| h[j * ze + k] * dr[oa + j]).sum();
-                    b[k] -= v;
-                }
-            }
-            de.push(inv * b);
-        }
+        let de = back_substitute(layout, n, &einv, &dr);
         Some((dr, de))
     }
 
@@ -1465,6 +1456,162 @@ impl NormalEquations for Reduced<'_> {
     fn step_norm((dr, de): &RigStep) -> f64 {
         (dr.norm_squared() + de.iter().map(|d| d.norm_squared()).sum::<f64>()).sqrt()
     }
+}
+
+/// The eliminated blocks' damped inverses; `None` when one is not positive definite.
+fn damped_inverses(
+    layout: &Layout,
+    n: &Normal,
+    lambda: f64,
+    floor: f64,
+) -> Option<Vec<Matrix6<f64>>> {
+    n.hee
+        .par_iter()
+        .zip(&layout.elim_size)
+        .map(|(hee, &size)| {
+            let mut h = *hee;
+            for i in 0..size {
+                h[(i, i)] += lambda * hee[(i, i)].max(floor);
+            }
+            invert_block(&h, size)
+        })
+        .collect()
+}
+
+/// The eliminated blocks' steps from the reduced one: `E⁻¹ (−g_e − H_eR dr)`.
+fn back_substitute(
+    layout: &Layout,
+    n: &Normal,
+    einv: &[Matrix6<f64>],
+    dr: &DVector<f64>,
+) -> Vec<Vector6<f64>> {
+    let mut de = Vec::with_capacity(n.hee.len());
+    for (e, inv) in einv.iter().enumerate() {
+        let mut b = -n.ge[e];
+        let ze = layout.elim_size[e];
+        for (h, (oa, za)) in n.her[e].iter(&layout.couplings[e]) {
+            for k in 0..ze {
+                let v: f64 = (0..za).map(|j| h[j * ze + k] * dr[oa + j]).sum();
+                b[k] -= v;
+            }
+        }
+        de.push(inv * b);
+    }
+    de
+}
+
+/// Below this reduced dimension the dense Cholesky takes a few milliseconds: no
+/// pattern is worth building.
+const SPARSE_MIN_REDUCED: usize = 1000;
+/// The sparse factorisation is taken when its factor holds at most this share of the
+/// dense lower triangle's entries.
+const SPARSE_MAX_FILL: f64 = 0.25;
+
+/// The reduced system's block pattern when it is sparse enough to factor sparse: every
+/// pair of reduced blocks an observation, a constraint or a shared eliminated block
+/// couples. `None` (dense) when the system is small, when some eliminated block couples
+/// an eighth of it or more (it makes dense rows), or when the factor would fill in.
+fn sparse_pattern(layout: &Layout, n: &Normal) -> Option<SparsePattern> {
+    sparse_pattern_within(layout, n, SPARSE_MIN_REDUCED, SPARSE_MAX_FILL, 8)
+}
+
+fn sparse_pattern_within(
+    layout: &Layout,
+    n: &Normal,
+    min_reduced: usize,
+    max_fill: f64,
+    dense_row_share: usize,
+) -> Option<SparsePattern> {
+    let nr = layout.n_reduced;
+    if nr < min_reduced {
+        return None;
+    }
+    let coupled = |c: &Vec<(usize, usize)>| c.iter().map(|c| c.1).sum::<usize>();
+    if layout
+        .couplings
+        .iter()
+        .any(|c| coupled(c) * dense_row_share >= nr)
+    {
+        return None;
+    }
+    let sized = |slots: &[Slot], z: usize| {
+        slots
+            .iter()
+            .filter_map(move |s| match s {
+                Slot::Reduced(o) => Some((*o, z)),
+                _ => None,
+            })
+            .collect::<Vec<_>>()
+    };
+    let mut blocks = sized(&layout.rig, 6);
+    blocks.extend(sized(&layout.cam, 6));
+    blocks.extend(sized(&layout.point, 3));
+    blocks.extend(sized(&layout.body, 6));
+    blocks.sort_unstable();
+    blocks.dedup();
+    let direct = n.hrr.blocks(layout).map(|((oa, _), (ob, _), _)| (oa, ob));
+    let shared = layout.couplings.iter().flat_map(|c| {
+        c.iter()
+            .enumerate()
+            .flat_map(move |(i, a)| c[i + 1..].iter().map(move |b| (a.0, b.0)))
+    });
+    let p = SparsePattern::new(nr, &blocks, direct.chain(shared))?;
+    let dense = (nr * (nr + 1) / 2) as f64;
+    (p.factor_nnz() as f64 <= max_fill * dense).then_some(p)
+}
+
+/// The damped reduced step from the sparse Schur complement: `None` when the pattern
+/// does not hold a block of these equations (then the dense path runs), `Some(None)`
+/// when the system is not positive definite.
+fn sparse_reduced_step(
+    p: &SparsePattern,
+    layout: &Layout,
+    n: &Normal,
+    einv: &[Matrix6<f64>],
+    lambda: f64,
+    floor: f64,
+) -> Option<Option<DVector<f64>>> {
+    let mut values = p.zeros();
+    for (a, b, h) in n.hrr.blocks(layout) {
+        if !p.add(&mut values, a, b, |i, j| h[(i, j)]) {
+            return None;
+        }
+    }
+    for i in 0..layout.n_reduced {
+        p.add_diagonal(&mut values, i, lambda * n.hrr.diag[i].max(floor));
+    }
+    let mut rhs = -n.gr.clone();
+    for (e, inv) in einv.iter().enumerate() {
+        let (couplings, her, ze) = (&layout.couplings[e], &n.her[e], layout.elim_size[e]);
+        schur_rhs(&mut rhs, couplings, her, inv, &n.ge[e], ze);
+    }
+    // The eliminated blocks in parts over the cores, each into its own copy of the
+    // values (a few MB), summed in a fixed order: the same result on any number of cores.
+    let ne = einv.len();
+    let parts = (ne / 256).clamp(1, MAX_PARTS);
+    let updates: Vec<Option<Vec<f64>>> = (0..parts)
+        .into_par_iter()
+        .map(|k| {
+            let mut part = p.zeros();
+            for e in k * ne / parts..(k + 1) * ne / parts {
+                let (couplings, her, ze) = (&layout.couplings[e], &n.her[e], layout.elim_size[e]);
+                let mut held = true;
+                pairwise_updates(couplings, her, &einv[e], ze, |a, b, v| {
+                    held &= p.add(&mut part, a, b, |i, j| -v[(i, j)]);
+                });
+                if !held {
+                    return None;
+                }
+            }
+            Some(part)
+        })
+        .collect();
+    for part in updates {
+        for (v, u) in values.iter_mut().zip(part?) {
+            *v += u;
+        }
+    }
+    Some(p.solve(&values, rhs))
 }
 
 /// Rows `B` of pending rank-k updates `S −= BᵀB`, applied by one matrix product per
@@ -1541,12 +1688,7 @@ fn schur_complement(
     for (e, inv) in inv.iter().enumerate() {
         let (couplings, her, ze) = (&layout.couplings[e], &n.her[e], layout.elim_size[e]);
         if let Some(rhs) = rhs.as_deref_mut() {
-            let ig = inv * n.ge[e];
-            for (h, (oa, za)) in her.iter(couplings) {
-                for i in 0..za {
-                    rhs[oa + i] += (0..ze).map(|k| h[i * ze + k] * ig[k]).sum::<f64>();
-                }
-            }
+            schur_rhs(rhs, couplings, her, inv, &n.ge[e], ze);
         }
         let coupled: usize = couplings.iter().map(|c| c.1).sum();
         if coupled == 0 {
@@ -1602,6 +1744,23 @@ fn schur_complement(
     }
 }
 
+/// `rhs_a += H_aᵀ E⁻¹ g` for the couplings `a` of one eliminated block.
+fn schur_rhs(
+    rhs: &mut DVector<f64>,
+    couplings: &[(usize, usize)],
+    her: &Couplings,
+    inv: &Matrix6<f64>,
+    g: &Vector6<f64>,
+    ze: usize,
+) {
+    let ig = inv * g;
+    for (h, (oa, za)) in her.iter(couplings) {
+        for i in 0..za {
+            rhs[oa + i] += (0..ze).map(|k| h[i * ze + k] * ig[k]).sum::<f64>();
+        }
+    }
+}
+
 /// The Schur update of one eliminated block of size `ze` with inverse `inv`, pair by
 /// pair of its couplings (both triangles).
 fn eliminate_pairwise(
@@ -1610,6 +1769,29 @@ fn eliminate_pairwise(
     her: &Couplings,
     inv: &Matrix6<f64>,
     ze: usize,
+) {
+    let nrows = s.nrows();
+    let data = s.as_mut_slice();
+    pairwise_updates(couplings, her, inv, ze, |(oa, za), (ob, zb), v| {
+        for i in 0..za {
+            for j in 0..zb {
+                data[(oa + i) + (ob + j) * nrows] -= v[(i, j)];
+                if oa != ob {
+                    data[(ob + j) + (oa + i) * nrows] -= v[(i, j)];
+                }
+            }
+        }
+    });
+}
+
+/// `H_aᵀ E⁻¹ H_b` (`za × zb`) for every pair `a ≤ b` of one eliminated block's
+/// couplings, handed to `f` with the blocks' `(offset, size)`.
+fn pairwise_updates(
+    couplings: &[(usize, usize)],
+    her: &Couplings,
+    inv: &Matrix6<f64>,
+    ze: usize,
+    mut f: impl FnMut((usize, usize), (usize, usize), &Matrix6<f64>),
 ) {
     // at_a = H_aᵀ E⁻¹ (za × ze), once per coupling.
     let ats: Vec<Matrix6<f64>> = her
@@ -1628,22 +1810,19 @@ fn eliminate_pairwise(
             at
         })
         .collect();
-    let nrows = s.nrows();
-    let data = s.as_mut_slice();
     for (a, (at, &(oa, za))) in ats.iter().zip(couplings).enumerate() {
-        for (b, (hb, (ob, zb))) in her.iter(couplings).enumerate().skip(a) {
+        for (hb, (ob, zb)) in her.iter(couplings).skip(a) {
+            let mut v = Matrix6::zeros();
             for i in 0..za {
                 for j in 0..zb {
-                    let mut v = 0.0;
+                    let mut acc = 0.0;
                     for k in 0..ze {
-                        v += at[(i, k)] * hb[j * ze + k];
+                        acc += at[(i, k)] * hb[j * ze + k];
                     }
-                    data[(oa + i) + (ob + j) * nrows] -= v;
-                    if a != b {
-                        data[(ob + j) + (oa + i) * nrows] -= v;
-                    }
+                    v[(i, j)] = acc;
                 }
             }
+            f((oa, za), (ob, zb), &v);
         }
     }
 }
@@ -1967,6 +2146,58 @@ mod tests {
                 worst < 1e-9 * full.amax(),
                 "{n_rigs}: {worst} of {}",
                 full.amax()
+            );
+        }
+    }
+
+    #[test]
+    fn the_sparse_reduced_step_is_the_dense_one() {
+        // Each point seen only by the rig poses within 6 of its own (a drive past the
+        // scene): the reduced system is a band, factored sparse.
+        let mut p = problem_with_rigs(40);
+        let np = p.points.len();
+        p.observations.retain(|o| match o.point {
+            PointRef::Free(i) => (o.rig as i64 - (i * 40 / np) as i64).abs() <= 6,
+            PointRef::Body { .. } => true,
+        });
+        p.rig_from_cam[1] = p.rig_from_cam[1]
+            .perturbed(&Vec3::new(0.02, -0.03, 0.01), &Vec3::new(0.01, 0.0, 0.015));
+        for x in p.points.iter_mut() {
+            *x += Vec3::new(0.01, -0.01, 0.02);
+        }
+        let layout = p.layout();
+        let n = p
+            .normal_equations(&layout, &Loss::Huber { scale: 2.0 }, None)
+            .unwrap();
+        let pattern = sparse_pattern_within(&layout, &n, 0, 1.0, 1).expect("a sparse pattern");
+        // Sparse indeed: under the dense triangle, fill-in included.
+        let nr = layout.n_reduced;
+        assert!(
+            pattern.factor_nnz() < nr * (nr + 1) / 2,
+            "{} of {nr}",
+            pattern.factor_nnz()
+        );
+        let dense_work = RefCell::new(Workspace {
+            sparse: Some(None),
+            ..Workspace::default()
+        });
+        let reduced = Reduced {
+            layout: &layout,
+            normal: n,
+            workspace: Some(&dense_work),
+        };
+        let n = &reduced.normal;
+        for (lambda, floor) in [(1e-3, 1e-9), (1.0, 1e-9), (1e-9, 1e-6)] {
+            let einv = damped_inverses(&layout, n, lambda, floor).unwrap();
+            let sparse = sparse_reduced_step(&pattern, &layout, n, &einv, lambda, floor)
+                .expect("every block in the pattern")
+                .expect("positive definite");
+            let (dense, _) = reduced.solve_damped(lambda, floor).unwrap();
+            let worst = (&sparse - &dense).amax();
+            assert!(
+                worst < 1e-9 * dense.amax(),
+                "λ {lambda}: {worst} of {}",
+                dense.amax()
             );
         }
     }

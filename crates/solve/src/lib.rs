@@ -6,6 +6,7 @@
 pub mod bundle;
 pub mod lm;
 pub mod loss;
+pub mod sparse;
 
 pub use bundle::{BundleProblem, BundleSummary, LmOptions, Obs, PointRef};
 pub use loss::{median, robust_sigma, Loss};
