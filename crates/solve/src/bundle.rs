@@ -9,8 +9,10 @@
 //! `[dt (3, metres, outer frame), dφ (3, radians, outer frame)]`.
 //!
 //! The linear system of each LM step is reduced by a Schur complement on the points and
-//! bodies (their blocks of the normal matrix are block-diagonal), leaving a dense system
-//! over rig poses and extrinsics, solved by Cholesky.
+//! bodies (their blocks of the normal matrix are block-diagonal), leaving a system over
+//! rig poses and extrinsics (or, with many frames, over points and extrinsics), solved by
+//! Cholesky: dense when every block couples most of it, sparse (`sparse_pattern`) when
+//! it is a band.
 
 use super::lm::{self, Damping, LeastSquares, NormalEquations, Rules, Termination};
 use super::loss::Loss;
