@@ -11,7 +11,7 @@ use faer::dyn_stack::{MemBuffer, MemStack, StackReq};
 use faer::sparse::linalg::cholesky::{factorize_symbolic_cholesky, SymbolicCholesky};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, Side};
-use nalgebra::DVector;
+use nalgebra::{DMatrix, DVector};
 
 /// The pattern of a block-sparse symmetric matrix and its symbolic Cholesky.
 pub struct SparsePattern {
@@ -166,6 +166,20 @@ impl SparsePattern {
         true
     }
 
+    /// The dense symmetric matrix of `values` (both triangles).
+    pub fn to_dense(&self, values: &[f64]) -> DMatrix<f64> {
+        let mut m = DMatrix::zeros(self.n, self.n);
+        let rows = self.pattern.row_idx();
+        for j in 0..self.n {
+            for k in self.col_ptr[j]..self.col_ptr[j + 1] {
+                let i = rows[k];
+                m[(i, j)] = values[k];
+                m[(j, i)] = values[k];
+            }
+        }
+        m
+    }
+
     /// Add `d[i]` to the diagonal entry `(i, i)`.
     pub fn add_diagonal(&self, values: &mut [f64], i: usize, d: f64) {
         // The diagonal entry heads its column.
@@ -206,7 +220,6 @@ impl SparsePattern {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use nalgebra::DMatrix;
 
     #[test]
     fn the_sparse_solve_is_the_dense_one() {
@@ -262,6 +275,7 @@ mod tests {
         // A block the pattern does not have is refused, not dropped silently.
         assert!(!p.add(&mut values, (0, 6), (15, 6), |_, _| 1.0));
         let b = DVector::from_fn(n, |i, _| (i as f64).sin());
+        assert_eq!(p.to_dense(&values), dense);
         let x = p.solve(&values, b.clone()).expect("positive definite");
         let want = dense.clone().cholesky().expect("spd").solve(&b);
         assert!((&x - &want).amax() < 1e-12 * want.amax(), "{x} vs {want}");
