@@ -2,7 +2,8 @@
 //! `car-hall` preset, seed 1, frame 0 of the front camera: 8 AprilGrids and wall tags,
 //! 77 tags; blur, vignetting, gain, noise, JPEG q 92), so that regressions of the
 //! detector's speed show, at both detection qualities. The image is rendered once per run (a few seconds).
-//! Also one realistic view of a thin-line "#" grid (`line_grid_rig_view`).
+//! Also the X-junction scan for unseeded boards on that image, and one realistic view of
+//! a thin-line "#" grid (`line_grid_rig_view`).
 //! Medians over samples; see docs/performance.md.
 
 use rigcal_detect::gray::Gray;
@@ -13,16 +14,33 @@ fn main() {
     divan::main();
 }
 
-#[divan::bench(sample_count = 10, args = [Quality::Accurate, Quality::Fast])]
-fn dense_hall_image_1080p(bencher: divan::Bencher, quality: Quality) {
+/// The hall and its dense image (front camera, frame 0).
+fn dense_hall() -> (Hall, Gray) {
     let h = hall("car-hall", 1, None).expect("preset");
     let nuisance = Nuisance::default();
     let jpeg = Hall::encode(&h.render(0, 0, &nuisance, 7), &nuisance).expect("encode");
     let img = Gray::from_dynamic(&image::load_from_memory(&jpeg).expect("decode"));
+    (h, img)
+}
+
+#[divan::bench(sample_count = 10, args = [Quality::Accurate, Quality::Fast])]
+fn dense_hall_image_1080p(bencher: divan::Bencher, quality: Quality) {
+    let (h, img) = dense_hall();
     let camera = &h.cameras[0].1;
     let opts = DetectOptions::of_quality(quality);
     rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
     bencher.bench(|| detect_tags(&img, &h.targets, Some(camera), &opts).expect("detect"));
+}
+
+/// The X-junction scan that places the bright-grown searches for unseeded boards
+/// (`crossings::board_crops`) on the same image, with no tag found (every board's
+/// junctions unexplained: its most expensive case).
+#[divan::bench(sample_count = 20)]
+fn board_crops_dense_hall_1080p(bencher: divan::Bencher) {
+    let (_, img) = dense_hall();
+    let px = img.to_u8();
+    let floor = rigcal_detect::quads::QuadOptions::default().contrast_for(&img);
+    bencher.bench(|| rigcal_detect::crossings::board_crops(&px, img.width, img.height, floor, &[]));
 }
 
 /// Thin-line targets: one realistic 1024×768 rig view of the "#" grid of Wu's ring

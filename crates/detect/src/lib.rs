@@ -9,6 +9,7 @@
 //! fitted in the undistorted plane so distortion does not bend them. Nothing is
 //! resampled.
 
+pub mod crossings;
 pub mod gray;
 mod grid;
 pub mod imageio;
@@ -245,7 +246,20 @@ pub fn detect_tags(
             ..base.clone()
         };
         let max_h = opts.quads.max_hamming;
-        let mut again: Vec<quads::Candidate> = quads::detect_pixels(&px, w, h, &grown)?;
+        // Those searches segment only the crops where an unseeded board may lie (the
+        // image's X-junctions that no found tag explains): the whole image costs as much
+        // as the first search, and the board is usually out of view.
+        let found_quads: Vec<[Vec2; 4]> = refined.values().map(|f| f.refined.corners).collect();
+        let floor = base.min_contrast.unwrap_or(quads::MIN_CONTRAST_RANGE.0);
+        let crops = crossings::board_crops(&px, w, h, floor, &found_quads);
+        let search = |o: &quads::QuadOptions| -> Result<Vec<quads::Candidate>, String> {
+            let mut out = Vec::new();
+            for r in &crops {
+                out.extend(quads::detect_pixels_in(&px, w, h, *r, o)?);
+            }
+            Ok(out)
+        };
+        let mut again: Vec<quads::Candidate> = search(&grown)?;
         // Boards of small tags (1.5-2.2 px per cell) keep their corner contacts on the
         // image and lose their black bits on the grown copy: a search of the image
         // upsampled 2× and grown by half a pixel seeds them (boards of 15-18 px tags:
@@ -276,12 +290,15 @@ pub fn detect_tags(
                 ..base.clone()
             };
             again.extend(
-                quads::detect_pixels(&px, w, h, &fine)?
+                search(&fine)?
                     .into_iter()
                     .filter(|c| unseeded.iter().any(|l| l.cell_of(c.id).is_some())),
             );
         }
         again.retain(|c| seedless.iter().any(|l| l.cell_of(c.id).is_some()));
+        // Crops overlap at their margins: an id found twice is kept once.
+        let mut ids = std::collections::BTreeSet::new();
+        again.retain(|c| ids.insert(c.id));
         let mut second = Vec::new();
         let found: BTreeMap<u32, grid::Found> =
             refine_candidates(img, again, lens, max_h, opts.threads, &mut second)

@@ -122,6 +122,38 @@ pub fn detect_pixels(
     })
 }
 
+/// [`detect_pixels`] on the crop `rect` of the `w × h` image `px`, corners in the
+/// image's pixels.
+pub fn detect_pixels_in(
+    px: &[u8],
+    w: usize,
+    h: usize,
+    rect: crate::crossings::Rect,
+    opts: &QuadOptions,
+) -> Result<Vec<Candidate>, String> {
+    if rect.x1 > w || rect.y1 > h || rect.x0 >= rect.x1 || rect.y0 >= rect.y1 {
+        return Err(format!(
+            "detect_pixels_in: crop {rect:?} of a {w}×{h} image"
+        ));
+    }
+    if rect.area() == w * h {
+        return detect_pixels(px, w, h, opts);
+    }
+    let cw = rect.x1 - rect.x0;
+    let crop: Vec<u8> = (rect.y0..rect.y1)
+        .flat_map(|y| &px[y * w + rect.x0..y * w + rect.x1])
+        .copied()
+        .collect();
+    let shift = Vec2::new(rect.x0 as f64, rect.y0 as f64);
+    let mut found = detect_pixels(&crop, cw, rect.y1 - rect.y0, opts)?;
+    for c in &mut found {
+        for p in &mut c.corners {
+            *p += shift;
+        }
+    }
+    Ok(found)
+}
+
 /// Build this thread's detector now (the decoder's table takes tens of milliseconds), so
 /// that timing a first image measures detection only.
 pub fn warm_up(opts: &QuadOptions) -> Result<(), String> {
