@@ -1052,8 +1052,12 @@ const HUBER_K: f64 = 2.0;
 /// Grey levels: below this the residuals are quantisation, not a scale.
 const MIN_SCALE: f64 = 0.5;
 
-/// The corner step (px) below which the fit has settled.
-const SETTLED_PX: f64 = 5e-3;
+/// The corner step (px) below which the fit has settled. That last step is taken (without
+/// evaluating the model there when it is undamped: [`TagFit::trusted`]), so what is left
+/// is the next, a fraction of it: at 10⁻² px the corners of 5 531 hall tags and of 120
+/// grid views were the same to four digits of their RMS as at 5·10⁻³, for a tenth less
+/// fit time; at 2·10⁻² the small tags' bias and spread grew.
+const SETTLED_PX: f64 = 1e-2;
 
 #[cfg(test)]
 mod tests {
