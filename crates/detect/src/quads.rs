@@ -131,9 +131,11 @@ pub fn detect_pixels_in(
     rect: crate::crossings::Rect,
     opts: &QuadOptions,
 ) -> Result<Vec<Candidate>, String> {
-    if rect.x1 > w || rect.y1 > h || rect.x0 >= rect.x1 || rect.y0 >= rect.y1 {
+    let inside = rect.x0 < rect.x1 && rect.y0 < rect.y1 && rect.x1 <= w && rect.y1 <= h;
+    if px.len() != w * h || !inside {
         return Err(format!(
-            "detect_pixels_in: crop {rect:?} of a {w}×{h} image"
+            "detect_pixels_in: crop {rect:?} of a {w}×{h} image of {} pixels",
+            px.len()
         ));
     }
     if rect.area() == w * h {
@@ -323,6 +325,56 @@ mod tests {
                 assert!((got - expect).abs() <= 0.5, "({j}, {y}): {got} vs {expect}");
             }
         }
+    }
+
+    /// A crop finds the tag the whole image finds, at the same image corners; a crop
+    /// outside the image, or pixels that are not the image's, are refused.
+    #[test]
+    fn a_crop_finds_tags_at_image_coordinates() {
+        use rigcal_synth::render::RenderOptions;
+        use rigcal_synth::tagscene::{scene, Lens, SceneParams};
+        let s = scene(&SceneParams {
+            grid: false,
+            tag_px: 60.0,
+            obliquity_deg: 20.0,
+            lens: Lens::Pinhole,
+            width: 640,
+            height: 480,
+            render: RenderOptions::default(),
+            seed: 3,
+        });
+        let gray = Gray::from_luma8(&s.image);
+        let opts = QuadOptions {
+            min_contrast: Some(QuadOptions::default().contrast_for(&gray)),
+            ..Default::default()
+        };
+        let px = gray.to_u8();
+        let (w, h) = (gray.width, gray.height);
+        let whole = detect_pixels(&px, w, h, &opts).unwrap();
+        assert_eq!(whole.len(), 1, "{whole:?}");
+        // A crop round the tag, its origin on the segmentation's 8-px tile grid.
+        let (mut lo, mut hi) = (whole[0].corners[0], whole[0].corners[0]);
+        for p in &whole[0].corners {
+            lo = lo.inf(p);
+            hi = hi.sup(p);
+        }
+        let rect = crate::crossings::Rect {
+            x0: ((lo.x as usize).saturating_sub(40)) / 16 * 16,
+            y0: ((lo.y as usize).saturating_sub(40)) / 16 * 16,
+            x1: (hi.x as usize + 40).min(w),
+            y1: (hi.y as usize + 40).min(h),
+        };
+        assert!(rect.area() < w * h / 2);
+        let cropped = detect_pixels_in(&px, w, h, rect, &opts).unwrap();
+        assert_eq!(cropped.len(), 1);
+        assert_eq!(cropped[0].id, whole[0].id);
+        for (a, b) in cropped[0].corners.iter().zip(&whole[0].corners) {
+            // (The C library works in single precision: ~1e-5 px apart.)
+            assert!((a - b).norm() < 1e-3, "{a} vs {b}");
+        }
+        let outside = crate::crossings::Rect { x1: w + 1, ..rect };
+        assert!(detect_pixels_in(&px, w, h, outside, &opts).is_err());
+        assert!(detect_pixels_in(&px[1..], w, h, rect, &opts).is_err());
     }
 
     #[test]
