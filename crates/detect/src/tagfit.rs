@@ -119,8 +119,9 @@ fn crossing_cover(surround: Surround, pu: f64, pv: f64, r: f64) -> f64 {
 /// The classes of the pattern's unit cells round the tag, looked up once per fit.
 struct Pattern {
     surround: Surround,
-    /// Cells `(i, j)` for `i, j ∈ [-TABLE_PAD, 8 + TABLE_PAD)`; `Outside` beyond.
-    table: [[Class; TABLE]; TABLE],
+    /// White and surround fractions (both 0: black) of cells `(i, j)` for
+    /// `i, j ∈ [-TABLE_PAD, 8 + TABLE_PAD)`; surround beyond.
+    cells: [[[f64; 2]; TABLE]; TABLE],
 }
 
 const TABLE_PAD: i32 = 4;
@@ -128,21 +129,25 @@ const TABLE: usize = 8 + 2 * TABLE_PAD as usize;
 
 impl Pattern {
     fn new(id: u32, surround: Surround) -> Pattern {
-        let mut table = [[Class::Outside; TABLE]; TABLE];
-        for (jj, row) in table.iter_mut().enumerate() {
+        let mut cells = [[[0.0; 2]; TABLE]; TABLE];
+        for (jj, row) in cells.iter_mut().enumerate() {
             for (ii, cell) in row.iter_mut().enumerate() {
-                *cell = class(id, surround, ii as i32 - TABLE_PAD, jj as i32 - TABLE_PAD);
+                *cell = match class(id, surround, ii as i32 - TABLE_PAD, jj as i32 - TABLE_PAD) {
+                    Class::White => [1.0, 0.0],
+                    Class::Outside => [0.0, 1.0],
+                    Class::Black => [0.0, 0.0],
+                };
             }
         }
-        Pattern { surround, table }
+        Pattern { surround, cells }
     }
 
-    fn at(&self, i: i32, j: i32) -> Class {
+    fn at(&self, i: i32, j: i32) -> [f64; 2] {
         let (ii, jj) = (i + TABLE_PAD, j + TABLE_PAD);
         if (0..TABLE as i32).contains(&ii) && (0..TABLE as i32).contains(&jj) {
-            self.table[jj as usize][ii as usize]
+            self.cells[jj as usize][ii as usize]
         } else {
-            Class::Outside
+            [0.0, 1.0]
         }
     }
 }
@@ -447,18 +452,12 @@ fn sharp_fields(
     let free_outside = pat.surround.free_outside();
     let mut outside = vec![0.0 as Field; if free_outside { n } else { 0 }];
     let inv2r = 0.5 / r;
-    // Overlap of [x − r, x + r] with unit cells: up to two (cell, fraction).
-    let split = |x: f64| -> [(i32, f64); 2] {
-        let (a, b) = (x - r, x + r);
+    // Overlap of [x − r, x + r] with unit cells: the first cell and its fraction (1:
+    // within it; the next cell has the rest).
+    let first_cell = |x: f64| -> (i32, f64) {
+        let a = x - r;
         let k = floor(a);
-        if b >= k + 1.0 {
-            [
-                (k as i32, (k + 1.0 - a) * inv2r),
-                (k as i32 + 1, (b - k - 1.0) * inv2r),
-            ]
-        } else {
-            [(k as i32, 1.0), (k as i32 + 1, 0.0)]
-        }
+        (k as i32, ((k + 1.0 - a) * inv2r).min(1.0))
     };
     let far = -(TABLE_PAD as f64) + 1.0..8.0 + TABLE_PAD as f64 - 1.0;
     let sw = reg.w * reg.sub;
@@ -483,26 +482,17 @@ fn sharp_fields(
                 }
                 continue;
             }
-            let (su, sv) = (split(pu), split(pv));
-            let (mut wsum, mut osum) = (0.0, 0.0);
-            if su[1].1 == 0.0 && sv[1].1 == 0.0 {
+            let ((iu, fu), (iv, fv)) = (first_cell(pu), first_cell(pv));
+            let [wsum, osum] = if fu >= 1.0 && fv >= 1.0 {
                 // Inside one cell (most sub-samples).
-                match pat.at(su[0].0, sv[0].0) {
-                    Class::White => wsum = 1.0,
-                    Class::Outside => osum = 1.0,
-                    Class::Black => {}
-                }
+                pat.at(iu, iv)
             } else {
-                for (i, fi) in su {
-                    for (j, fj) in sv {
-                        match pat.at(i, j) {
-                            Class::White => wsum += fi * fj,
-                            Class::Outside => osum += fi * fj,
-                            Class::Black => {}
-                        }
-                    }
-                }
-            }
+                let (gu, gv) = (1.0 - fu, 1.0 - fv);
+                let (a, b) = (pat.at(iu, iv), pat.at(iu + 1, iv));
+                let (c, d) = (pat.at(iu, iv + 1), pat.at(iu + 1, iv + 1));
+                let mix = |m: usize| fv * (fu * a[m] + gu * b[m]) + gv * (fu * c[m] + gu * d[m]);
+                [mix(0), mix(1)]
+            };
             white[k] = (wsum - crossing_cover(pat.surround, pu, pv, r)) as Field;
             if free_outside {
                 outside[k] = osum as Field;
@@ -808,7 +798,8 @@ fn jacobian(
     // coordinate.
     let h = pattern_to_plane(&c, lens)?;
     let hinv = h.try_inverse()?;
-    let moved: Vec<Mat3> = (0..8)
+    // `∂H/∂cⱼ` (both `H` are scaled alike, `H₃₃ = 1`).
+    let dh: Vec<Mat3> = (0..8)
         .map(|j| {
             let mut cj = c;
             if j % 2 == 0 {
@@ -816,7 +807,7 @@ fn jacobian(
             } else {
                 cj[j / 2].y += CORNER_STEP;
             }
-            pattern_to_plane(&cj, lens)
+            Some((pattern_to_plane(&cj, lens)? - h) / CORNER_STEP)
         })
         .collect::<Option<_>>()?;
     let mut jac = Vec::with_capacity(reg.pixels.len());
@@ -827,14 +818,16 @@ fn jacobian(
             coef_w * wx[i] + coef_o * ox[i],
             coef_w * wy[i] + coef_o * oy[i],
         );
+        // The pattern point imaged at the pixel, scaled so that `H·u = (q, 1)`: then
+        // `∂q/∂cⱼ = (∂H·u)_xy − q·(∂H·u)_z`, and it moves the pixel by `L·∂q` (`L` the
+        // lens's plane-to-pixel Jacobian). r = grey − model, and the model there becomes
+        // the one from −v: so the row is `∇·L·∂q = e·(∂H·u)`, `e = (Lᵀ∇, −Lᵀ∇·q)`.
         let u = hinv * Vec3::new(px.plane.x, px.plane.y, 1.0);
+        let g = px.lens_jac.transpose() * grad;
+        let e = Vec3::new(g.x, g.y, -g.dot(&px.plane));
         let mut row = Row::zeros();
-        for (j, hj) in moved.iter().enumerate() {
-            let q = hj * u;
-            let dq = (Vec2::new(q.x / q.z, q.y / q.z) - px.plane) / CORNER_STEP;
-            let v = px.lens_jac * dq;
-            // r = grey − model; the model there becomes the one from −v: −∇·v.
-            row[j] = grad.dot(&v);
+        for (j, dhj) in dh.iter().enumerate() {
+            row[j] = e.dot(&(dhj * u));
         }
         row[8] = -(coef_w * (ws[i] - w0[i]) + coef_o * (os[i] - o0[i])) / ds;
         jac.push(row);
