@@ -329,19 +329,42 @@ pub fn detect_tags(
     let mut tags = Vec::new();
     let mut points = Vec::new();
     let mut dropped_corners = Vec::new();
-    let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
-        if opts.whole_fit_below > 0.0 {
-            whole_tag_corners(
-                img,
-                &f.refined.corners,
-                lens,
-                id,
-                layout,
-                opts.whole_fit_below,
-            )
-        } else {
-            (f.refined.corners, [None; 4])
+    // The blur the image's first whole-tag fit finds starts the others' (fitted before
+    // the tags are shared out to threads, so the result does not depend on their count).
+    let blur = std::sync::OnceLock::<f64>::new();
+    let fit = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
+        whole_tag_corners(
+            img,
+            &f.refined.corners,
+            lens,
+            id,
+            layout,
+            opts.whole_fit_below,
+            blur.get().copied(),
+        )
+    };
+    let finish = |tags: &[(u32, grid::Found)], layout: Option<&GridLayout>| -> Vec<Measured> {
+        if opts.whole_fit_below <= 0.0 {
+            return tags
+                .iter()
+                .map(|(_, f)| (f.refined.corners, [None; 4]))
+                .collect();
         }
+        let mut first = Vec::new();
+        if blur.get().is_none() {
+            for (id, f) in tags {
+                let (measured, sigma) = fit(*id, f, layout);
+                first.push(measured);
+                if let Some(s) = sigma {
+                    let _ = blur.set(s);
+                    break;
+                }
+            }
+        }
+        let rest = par_map(&tags[first.len()..], opts.threads, |(id, f)| {
+            fit(*id, f, layout).0
+        });
+        first.into_iter().chain(rest).collect()
     };
     let mut emit = |target: &str,
                     id: u32,
@@ -402,9 +425,7 @@ pub fn detect_tags(
                 grid::complete(img, layout, seeds, lens, max_h, &mut rej)
                     .into_iter()
                     .collect();
-            let fitted = par_map(&completed, opts.threads, |(id, f)| {
-                finish(*id, f, Some(layout))
-            });
+            let fitted = finish(&completed, Some(layout));
             let board: Vec<(u32, grid::Found, Measured)> = completed
                 .into_iter()
                 .zip(fitted)
@@ -436,7 +457,7 @@ pub fn detect_tags(
                 .into_iter()
                 .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
                 .collect();
-            let fitted = par_map(&found, opts.threads, |(id, f)| finish(*id, f, None));
+            let fitted = finish(&found, None);
             for ((id, f), c) in found.iter().zip(&fitted) {
                 emit(name, *id, f, c, None);
             }
@@ -479,7 +500,8 @@ fn measured_inside(img: &Gray, p: &Vec2) -> bool {
 /// The corners a tag is reported with, and which are left out: a tag too small for the
 /// edge measurement's room is fitted whole ([`tagfit`]), from the edge-refined corners,
 /// and corners its surround misfits are left out; where that fit does not settle the
-/// edge-refined corners stand, unless the tag is too small for them.
+/// edge-refined corners stand, unless the tag is too small for them. With the blur σ
+/// the fit found, when one ran and settled.
 fn whole_tag_corners(
     img: &Gray,
     corners: &[Vec2; 4],
@@ -487,9 +509,10 @@ fn whole_tag_corners(
     id: u32,
     layout: Option<&GridLayout>,
     below: f64,
-) -> Measured {
+    blur: Option<f64>,
+) -> (Measured, Option<f64>) {
     if tagfit::shallowest_extent(corners) >= below {
-        return (*corners, [None; 4]);
+        return ((*corners, [None; 4]), None);
     }
     let surround = match layout {
         Some(l) => tagfit::Surround::Grid {
@@ -497,14 +520,17 @@ fn whole_tag_corners(
         },
         None => tagfit::Surround::Single,
     };
-    match tagfit::fit_whole_tag(img, corners, lens, id, surround) {
-        Some(f) => (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
+    match tagfit::fit_whole_tag_from(img, corners, lens, id, surround, blur) {
+        Some(f) => (
+            (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
+            Some(f.sigma),
+        ),
         // Under 2 px per cell the edges can be a pixel off (a side measured against the
         // bits beside it): without the fit such a tag has no corner worth reporting.
         None if verify::cell_px(corners) < MIN_EDGE_CELL_PX => {
-            (*corners, [Some(Unmeasured::TooSmall); 4])
+            ((*corners, [Some(Unmeasured::TooSmall); 4]), None)
         }
-        None => (*corners, [None; 4]),
+        None => ((*corners, [None; 4]), None),
     }
 }
 
