@@ -36,9 +36,9 @@ fn single_tags_are_found_with_subpixel_corners() {
     }
 }
 
-/// One image's detections do not depend on how many threads share its tags: the first
-/// whole-tag fit (whose blur starts the others) runs before they are shared out. A
-/// board of 30 px tags (all fitted whole) through a distorting lens.
+/// One image's detections do not depend on how many threads share its tags (the
+/// refinement and whole-tag fits of `rigcal detect --threads N`): a board of 30 px tags,
+/// all fitted whole, through a distorting lens.
 #[test]
 fn detections_do_not_depend_on_the_thread_count() {
     let s = scene(&SceneParams {

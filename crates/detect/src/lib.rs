@@ -329,42 +329,19 @@ pub fn detect_tags(
     let mut tags = Vec::new();
     let mut points = Vec::new();
     let mut dropped_corners = Vec::new();
-    // The blur the image's first whole-tag fit finds starts the others' (fitted before
-    // the tags are shared out to threads, so the result does not depend on their count).
-    let blur = std::sync::OnceLock::<f64>::new();
-    let fit = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
-        whole_tag_corners(
-            img,
-            &f.refined.corners,
-            lens,
-            id,
-            layout,
-            opts.whole_fit_below,
-            blur.get().copied(),
-        )
-    };
-    let finish = |tags: &[(u32, grid::Found)], layout: Option<&GridLayout>| -> Vec<Measured> {
-        if opts.whole_fit_below <= 0.0 {
-            return tags
-                .iter()
-                .map(|(_, f)| (f.refined.corners, [None; 4]))
-                .collect();
+    let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
+        if opts.whole_fit_below > 0.0 {
+            whole_tag_corners(
+                img,
+                &f.refined.corners,
+                lens,
+                id,
+                layout,
+                opts.whole_fit_below,
+            )
+        } else {
+            (f.refined.corners, [None; 4])
         }
-        let mut first = Vec::new();
-        if blur.get().is_none() {
-            for (id, f) in tags {
-                let (measured, sigma) = fit(*id, f, layout);
-                first.push(measured);
-                if let Some(s) = sigma {
-                    let _ = blur.set(s);
-                    break;
-                }
-            }
-        }
-        let rest = par_map(&tags[first.len()..], opts.threads, |(id, f)| {
-            fit(*id, f, layout).0
-        });
-        first.into_iter().chain(rest).collect()
     };
     let mut emit = |target: &str,
                     id: u32,
@@ -425,7 +402,9 @@ pub fn detect_tags(
                 grid::complete(img, layout, seeds, lens, max_h, &mut rej)
                     .into_iter()
                     .collect();
-            let fitted = finish(&completed, Some(layout));
+            let fitted = par_map(&completed, opts.threads, |(id, f)| {
+                finish(*id, f, Some(layout))
+            });
             let board: Vec<(u32, grid::Found, Measured)> = completed
                 .into_iter()
                 .zip(fitted)
@@ -457,7 +436,7 @@ pub fn detect_tags(
                 .into_iter()
                 .filter_map(|id| refined.remove(&id).map(|f| (id, f)))
                 .collect();
-            let fitted = finish(&found, None);
+            let fitted = par_map(&found, opts.threads, |(id, f)| finish(*id, f, None));
             for ((id, f), c) in found.iter().zip(&fitted) {
                 emit(name, *id, f, c, None);
             }
@@ -500,8 +479,7 @@ fn measured_inside(img: &Gray, p: &Vec2) -> bool {
 /// The corners a tag is reported with, and which are left out: a tag too small for the
 /// edge measurement's room is fitted whole ([`tagfit`]), from the edge-refined corners,
 /// and corners its surround misfits are left out; where that fit does not settle the
-/// edge-refined corners stand, unless the tag is too small for them. With the blur σ
-/// the fit found, when one ran and settled.
+/// edge-refined corners stand, unless the tag is too small for them.
 fn whole_tag_corners(
     img: &Gray,
     corners: &[Vec2; 4],
@@ -509,10 +487,9 @@ fn whole_tag_corners(
     id: u32,
     layout: Option<&GridLayout>,
     below: f64,
-    blur: Option<f64>,
-) -> (Measured, Option<f64>) {
+) -> Measured {
     if tagfit::shallowest_extent(corners) >= below {
-        return ((*corners, [None; 4]), None);
+        return (*corners, [None; 4]);
     }
     let surround = match layout {
         Some(l) => tagfit::Surround::Grid {
@@ -520,17 +497,14 @@ fn whole_tag_corners(
         },
         None => tagfit::Surround::Single,
     };
-    match tagfit::fit_whole_tag_from(img, corners, lens, id, surround, blur) {
-        Some(f) => (
-            (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
-            Some(f.sigma),
-        ),
+    match tagfit::fit_whole_tag(img, corners, lens, id, surround) {
+        Some(f) => (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
         // Under 2 px per cell the edges can be a pixel off (a side measured against the
         // bits beside it): without the fit such a tag has no corner worth reporting.
         None if verify::cell_px(corners) < MIN_EDGE_CELL_PX => {
-            ((*corners, [Some(Unmeasured::TooSmall); 4]), None)
+            (*corners, [Some(Unmeasured::TooSmall); 4])
         }
-        None => ((*corners, [None; 4]), None),
+        None => (*corners, [None; 4]),
     }
 }
 

@@ -265,8 +265,6 @@ const KERNEL_REACH_PX: i64 = 6;
 const COARSE: usize = 4;
 const MAX_SIGMA: f64 = 1.5;
 const MIN_SIGMA: f64 = 0.25;
-/// The fit's blur σ (px) where nothing is known of the image's.
-const START_SIGMA: f64 = 0.9;
 
 /// The region of the tag with corners `corners` (raw px), sampled `sub_n` times per
 /// pixel side; `None` when a pixel it compares lies outside the image, or it is
@@ -910,21 +908,6 @@ pub fn fit_whole_tag(
     id: u32,
     surround: Surround,
 ) -> Option<WholeFit> {
-    fit_whole_tag_from(img, start, lens, id, surround, None)
-}
-
-/// [`fit_whole_tag`] with the blur started at `blur` (an earlier fit's
-/// [`WholeFit::sigma`] in the same image) instead of [`START_SIGMA`]: an image's tags
-/// share its optics (on the hall captures they settle within 0.41 ± 0.01), and from the
-/// default two fits in three took a third model evaluation to get there.
-pub fn fit_whole_tag_from(
-    img: &Gray,
-    start: &[Vec2; 4],
-    lens: Lens,
-    id: u32,
-    surround: Surround,
-    blur: Option<f64>,
-) -> Option<WholeFit> {
     let reg = region(img, start, lens, SUB)?;
     if reg.pixels.len() < 64 {
         return None;
@@ -935,14 +918,7 @@ pub fn fit_whole_tag_from(
         p[2 * k] = start[k].x;
         p[2 * k + 1] = start[k].y;
     }
-    // The reported σ counts the model's own smoothing (see the end): taken out again.
-    let smoothing = AA_SUBSAMPLES / SUB as f64;
-    p[8] = blur.map_or(START_SIGMA, |b| {
-        (b * b - smoothing * smoothing / 12.0)
-            .max(0.0)
-            .sqrt()
-            .clamp(MIN_SIGMA, MAX_SIGMA)
-    });
+    p[8] = 0.9;
     let mut problem = TagFit {
         reg: &reg,
         lens,
@@ -964,6 +940,7 @@ pub fn fit_whole_tag_from(
     }
     // The sharp pattern's own smoothing (a box of AA_SUBSAMPLES sub-samples) is part
     // of the blur the image shows.
+    let smoothing = AA_SUBSAMPLES / SUB as f64;
     Some(WholeFit {
         corners,
         sigma: (sigma * sigma + smoothing * smoothing / 12.0).sqrt(),
@@ -1297,42 +1274,6 @@ mod tests {
             assert!((normal.h - h).norm() <= 1e-9 * h.norm(), "JᵀWJ");
             assert!((normal.g - g).norm() <= 1e-9 * g.norm(), "JᵀWr");
             p[0] += 0.02;
-        }
-    }
-
-    /// A fit started from an earlier fit's blur (or from a wrong one) settles where the
-    /// default start does, within the settling step (σ 2 grey noise: at most 0.006 px
-    /// apart, against the noise's 0.01-0.03 px).
-    #[test]
-    fn a_blur_start_settles_where_the_default_start_does() {
-        for (lens, px, obl) in [
-            (SceneLens::Pinhole, 24.0, 10.0),
-            (SceneLens::Radtan, 30.0, 45.0),
-            (SceneLens::Equidistant, 40.0, 30.0),
-        ] {
-            let s = small_tag(lens, false, px, obl, 2.0, 9);
-            let (id, truth) = well_in_view(&s);
-            let img = Gray::from_luma8(&s.image);
-            let lens = Lens(Some(&s.camera));
-            let start = [0, 1, 2, 3].map(|k| truth[k] + Vec2::new(0.2, -0.15));
-            let default = fit_whole_tag(&img, &start, lens, id, Surround::Single).expect("fits");
-            for blur in [default.sigma, 0.5, 1.3] {
-                let f = fit_whole_tag_from(&img, &start, lens, id, Surround::Single, Some(blur))
-                    .expect("fits from a blur start");
-                for k in 0..4 {
-                    let d = (f.corners[k] - default.corners[k]).norm();
-                    assert!(
-                        d < SETTLED_PX,
-                        "{px} px at {obl}°, start σ {blur}: corner {k} {d:.5} px"
-                    );
-                }
-                assert!(
-                    (f.sigma - default.sigma).abs() < 0.01,
-                    "σ {} vs {}",
-                    f.sigma,
-                    default.sigma
-                );
-            }
         }
     }
 
