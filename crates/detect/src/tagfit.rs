@@ -689,6 +689,16 @@ fn solve_levels(
 /// The fit's unknowns: the four corners (raw px) and the blur σ.
 type Params = SVector<f64, 9>;
 
+fn pack(corners: &[Vec2; 4], sigma: f64) -> Params {
+    let mut p = Params::zeros();
+    for (k, c) in corners.iter().enumerate() {
+        p[2 * k] = c.x;
+        p[2 * k + 1] = c.y;
+    }
+    p[8] = sigma;
+    p
+}
+
 fn unpack(p: &Params) -> ([Vec2; 4], f64) {
     (
         [0, 1, 2, 3].map(|k| Vec2::new(p[2 * k], p[2 * k + 1])),
@@ -913,22 +923,8 @@ pub fn fit_whole_tag(
         return None;
     }
     let pat = Pattern::new(id, surround);
-    let mut p = Params::zeros();
-    for k in 0..4 {
-        p[2 * k] = start[k].x;
-        p[2 * k + 1] = start[k].y;
-    }
-    p[8] = 0.9;
-    let mut problem = TagFit {
-        reg: &reg,
-        lens,
-        pat: &pat,
-        weights: vec![1.0; reg.pixels.len()],
-        jacobian: None,
-        evaluated: None,
-        at: None,
-    };
-    let fit = minimize(&mut problem, p, &FIT)?;
+    let mut problem = TagFit::new(&reg, lens, &pat);
+    let fit = minimize(&mut problem, pack(start, 0.9), &FIT)?;
     if fit.termination == Termination::NotLinearizable {
         return None;
     }
@@ -969,7 +965,19 @@ struct TagFit<'a> {
     at: Option<(DVector<f64>, SVector<f64, 7>)>,
 }
 
-impl TagFit<'_> {
+impl<'a> TagFit<'a> {
+    fn new(reg: &'a Region, lens: Lens<'a>, pat: &'a Pattern) -> Self {
+        TagFit {
+            reg,
+            lens,
+            pat,
+            weights: vec![1.0; reg.pixels.len()],
+            jacobian: None,
+            evaluated: None,
+            at: None,
+        }
+    }
+
     fn weighted_cost(&self, r: &DVector<f64>) -> f64 {
         r.iter().zip(&self.weights).map(|(x, w)| w * x * x).sum()
     }
@@ -1244,21 +1252,8 @@ mod tests {
         let lens = Lens(Some(&s.camera));
         let reg = region(&img, truth, lens, SUB).expect("region");
         let pat = Pattern::new(id, Surround::Single);
-        let mut p = Params::zeros();
-        for k in 0..4 {
-            p[2 * k] = truth[k].x + 0.1;
-            p[2 * k + 1] = truth[k].y - 0.05;
-        }
-        p[8] = 0.9;
-        let mut fit = TagFit {
-            reg: &reg,
-            lens,
-            pat: &pat,
-            weights: vec![1.0; reg.pixels.len()],
-            jacobian: None,
-            evaluated: None,
-            at: None,
-        };
+        let mut p = pack(&truth.map(|c| c + Vec2::new(0.1, -0.05)), 0.9);
+        let mut fit = TagFit::new(&reg, lens, &pat);
         for _ in 0..2 {
             let normal = fit.linearize(&p).expect("linearizes");
             let (jac, _) = fit.jacobian.as_ref().expect("jacobian");
