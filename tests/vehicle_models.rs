@@ -96,6 +96,12 @@ async fn nominal_rig_tolerances_and_the_vehicle_frame() {
     let r = put_model(&c, &s, "rig", &model()).await;
     assert_eq!(r.status().as_u16(), 201);
     assert_eq!(r.headers()["location"], "/v1/vehicle-models/rig");
+    // Replacements back to back (within a millisecond of each other, some of them)
+    // are replacements.
+    for _ in 0..10 {
+        let r = put_model(&c, &s, "rig", &model()).await;
+        assert_eq!(r.status().as_u16(), 200);
+    }
     let mut strict = model();
     strict["fleet_outlier_z"] = json!(6.0);
     let r = put_model(&c, &s, "rig", &strict).await;

@@ -50,15 +50,34 @@ impl Store {
     ) -> sqlx::Result<bool> {
         let text = serde_json::to_string(document).map_err(|e| sqlx::Error::Encode(Box::new(e)))?;
         let now = now_ms();
-        // One statement, so two first PUTs at once cannot both insert.
-        let row = self.db.fetch_one(sql("INSERT INTO vehicle_models (tenant_id, model, document, created_at, updated_at) VALUES ($1, $2, $3, $4, $4) ON CONFLICT (tenant_id, model) DO UPDATE SET document = excluded.document, updated_at = excluded.updated_at RETURNING created_at")
+        // The insert says itself whether it created the row (a row comes back only
+        // then): two first PUTs at once cannot both insert, and the loser replaces. (Telling
+        // it from `created_at == now` called a replacement within the same millisecond a
+        // creation.) Models are never deleted, so the row the update needs is there.
+        let inserted = self.db.fetch_optional(sql("INSERT INTO vehicle_models (tenant_id, model, document, created_at, updated_at) VALUES ($1, $2, $3, $4, $4) ON CONFLICT (tenant_id, model) DO NOTHING RETURNING created_at")
             .bind(tenant_id)
             .bind(model)
             .bind(&text)
             .bind(now))
             .await?;
-        let created_at: i64 = row.get("created_at")?;
-        Ok(created_at == now)
+        if inserted.is_some() {
+            return Ok(true);
+        }
+        let updated = self
+            .db
+            .execute(
+                sql("UPDATE vehicle_models SET document = $1, updated_at = $2 WHERE tenant_id = $3 AND model = $4")
+                    .bind(&text)
+                    .bind(now)
+                    .bind(tenant_id)
+                    .bind(model),
+            )
+            .await?;
+        if updated == 0 {
+            // Neither inserted nor there: the store contradicts itself.
+            return Err(sqlx::Error::RowNotFound);
+        }
+        Ok(false)
     }
 
     pub async fn vehicle_model(
