@@ -13,6 +13,7 @@
 use super::{pnp, twoview};
 use rigcal_core::geometry::plane::is_planar;
 use rigcal_core::geometry::{Pose, Vec2, Vec3};
+use rigcal_core::par::{cores, par_map};
 use rigcal_core::session::{PointKind, Session};
 use rigcal_solve::bundle::{BundleProblem, LmOptions, Obs};
 use rigcal_solve::{median, robust_sigma};
@@ -200,9 +201,27 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
     let mut queue: std::collections::VecDeque<(usize, Option<usize>)> =
         order.into_iter().map(|s| (s, None)).collect();
     let mut splits: HashMap<usize, usize> = HashMap::new();
+    // Once the reference poses are known, the other scenes' reconstructions depend on
+    // nothing the loop changes (a split relabels only its own scene's points, and a rest
+    // keeps its labels until it is reconstructed): those queued then run on all cores at
+    // once, and the loop takes their results in its order.
+    let mut ahead: Option<HashMap<usize, Result<SceneRecon, String>>> = None;
     while let Some((s, part_of)) = queue.pop_front() {
         let is_rest = part_of.is_some();
-        match reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses) {
+        if ahead.is_none() && !reference_poses.is_empty() {
+            let rest: Vec<usize> = std::iter::once(s)
+                .chain(queue.iter().map(|(q, _)| *q))
+                .collect();
+            let recons = par_map(&rest, cores(), |&q| {
+                reconstruct_scene(session, &scene_of_point, q, opts, &reference_poses)
+            });
+            ahead = Some(rest.into_iter().zip(recons).collect());
+        }
+        let recon = match ahead.as_mut().and_then(|a| a.remove(&s)) {
+            Some(r) => r,
+            None => reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses),
+        };
+        match recon {
             Ok(mut r) => {
                 r.part_of = part_of;
                 if is_rest

@@ -5,6 +5,7 @@
 
 pub mod geometry;
 pub mod linalg;
+pub mod par;
 pub mod result;
 pub mod session;
 pub mod target;

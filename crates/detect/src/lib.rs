@@ -24,6 +24,7 @@ mod verify;
 use gray::Gray;
 use refine::{refine_quad, Lens};
 use rigcal_core::geometry::{Camera, Vec2};
+use rigcal_core::par::par_map;
 use rigcal_core::session::TargetSpec;
 use rigcal_core::target::board::GridLayout;
 use serde::Serialize;
@@ -77,36 +78,6 @@ impl DetectOptions {
             threads: 1,
         }
     }
-}
-
-/// `f` over `items` on up to `threads` scoped threads, results in the items' order.
-/// Items are dealt round-robin, so tags of one board (similar sizes, similar cost)
-/// spread over the threads.
-fn par_map<T: Sync, R: Send>(items: &[T], threads: usize, f: impl Fn(&T) -> R + Sync) -> Vec<R> {
-    let threads = threads.clamp(1, items.len().max(1));
-    if threads == 1 {
-        return items.iter().map(f).collect();
-    }
-    let f = &f;
-    let mut parts: Vec<Vec<(usize, R)>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = (0..threads)
-            .map(|t| {
-                scope.spawn(move || {
-                    (t..items.len())
-                        .step_by(threads)
-                        .map(|i| (i, f(&items[i])))
-                        .collect::<Vec<_>>()
-                })
-            })
-            .collect();
-        handles
-            .into_iter()
-            .map(|h| h.join().unwrap_or_else(|p| std::panic::resume_unwind(p)))
-            .collect()
-    });
-    let mut out: Vec<(usize, R)> = parts.drain(..).flatten().collect();
-    out.sort_by_key(|(i, _)| *i);
-    out.into_iter().map(|(_, r)| r).collect()
 }
 
 /// One tag found in an image.
