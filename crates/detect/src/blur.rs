@@ -4,6 +4,7 @@
 
 use super::gray::Gray;
 use super::refine::edge_sigma;
+use super::verify::cell_px;
 use rigcal_core::geometry::Vec2;
 
 /// The blur (σ px, [`edge_blur`]) above which the decimated quad search runs as well as
@@ -13,9 +14,9 @@ use rigcal_core::geometry::Vec2;
 /// resolution alone loses 1, 11, 3 and 73 tags the decimated search finds.
 pub const SHARP_PX: f64 = 0.8;
 
-/// Tags whose shortest side is under this (px) are not read: their black border is under
-/// 5 px wide, and the profile across it runs into the bits.
-const MIN_SIDE_PX: f64 = 40.0;
+/// Tags whose cell ([`cell_px`], the border's width) is under this (px) are not read:
+/// the profile across a narrower border runs into the bits.
+const MIN_CELL_PX: f64 = 5.0;
 
 /// How far (px) the edge may be from the quad's side: the C library's corners are within
 /// a pixel or so.
@@ -32,19 +33,18 @@ const MAX_SIDES: usize = 64;
 /// The Gaussian σ (px) of the optics, the pixel's own area included, at the blurriest
 /// tenth of the sides of the tags with corners `quads` (a soft corner of the image
 /// counts); `None` when no tag is large enough to read.
+///
 /// Each side is read at its midpoint by the edge refinement's blurred-step fit
 /// ([`edge_sigma`]).
 pub fn edge_blur(img: &Gray, quads: &[[Vec2; 4]]) -> Option<f64> {
     let mut sigmas = Vec::new();
     for q in quads {
-        let shortest = (0..4)
-            .map(|k| (q[(k + 1) % 4] - q[k]).norm())
-            .fold(f64::INFINITY, f64::min);
-        if shortest < MIN_SIDE_PX {
+        let cell = cell_px(q);
+        if cell < MIN_CELL_PX {
             continue;
         }
         let centre = (q[0] + q[1] + q[2] + q[3]) / 4.0;
-        let d = (0.35 * shortest / 8.0).min(MAX_LEVELS_PX);
+        let d = (0.35 * cell).min(MAX_LEVELS_PX);
         for k in 0..4 {
             let (a, b) = (q[k], q[(k + 1) % 4]);
             let mid = (a + b) / 2.0;

@@ -173,15 +173,12 @@ pub fn detect_tags(
     let searched_full = opts.full_resolution
         && base.decimate > 1.0
         && wanted.iter().any(|w| matches!(w, Wanted::Tags(..)));
-    let first = if searched_full {
-        quads::QuadOptions {
-            decimate: 1.0,
-            ..base.clone()
-        }
-    } else {
-        base.clone()
+    let full = quads::QuadOptions {
+        decimate: 1.0,
+        ..base.clone()
     };
-    let mut candidates = quads::detect_pixels(&px, w, h, &first)?;
+    let first = if searched_full { &full } else { &base };
+    let mut candidates = quads::detect_pixels(&px, w, h, first)?;
     if searched_full {
         let quads: Vec<[Vec2; 4]> = candidates.iter().map(|c| c.corners).collect();
         if blur::edge_blur(img, &quads).is_none_or(|b| b > blur::SHARP_PX) {
