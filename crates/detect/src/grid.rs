@@ -129,13 +129,14 @@ pub fn inconsistent(
 }
 
 /// Complete and check one board. `seeds` are the refined quad-detector tags whose ids
-/// belong to the board (at most one per id).
+/// belong to the board (at most one per id); predicted tags are measured with profiles
+/// `spacing` px apart ([`super::refine::SideSampling::spacing`]).
 pub fn complete(
     img: &Gray,
     layout: &GridLayout,
     seeds: BTreeMap<u32, Found>,
     lens: Lens,
-    max_hamming: u32,
+    (max_hamming, spacing): (u32, f64),
     rejected: &mut Vec<(u32, String)>,
 ) -> BTreeMap<u32, Found> {
     let mut found = BTreeMap::new();
@@ -215,7 +216,7 @@ pub fn complete(
             let Some(pred) = predict(layout, &h, id, lens, img) else {
                 continue;
             };
-            let Some(refined) = refine_quad(img, &pred, lens, PREDICTION_REACH) else {
+            let Some(refined) = refine_quad(img, &pred, lens, PREDICTION_REACH, spacing) else {
                 continue;
             };
             let Some(reading) = read_tag(img, &refined.corners, lens, id) else {

@@ -56,6 +56,10 @@ pub struct DetectOptions {
     /// where images are detected in parallel already (a job, `rigcal calibrate`); the
     /// cores for one image on its own (`rigcal detect`).
     pub threads: usize,
+    /// Distance (px) between the edge profiles that measure a side
+    /// ([`refine::SideSampling::spacing`]): one per pixel, or one per independent fit for
+    /// [`Quality::Fast`].
+    pub profile_spacing: f64,
 }
 
 impl Default for DetectOptions {
@@ -77,6 +81,11 @@ impl DetectOptions {
                 FAST_WHOLE_FIT_BELOW_PX
             },
             threads: 1,
+            profile_spacing: if accurate {
+                1.0
+            } else {
+                refine::INDEPENDENT_SPACING
+            },
         }
     }
 }
@@ -191,14 +200,7 @@ pub fn detect_tags(
         }
     }
     let mut rejected = Vec::new();
-    let mut refined = refine_candidates(
-        img,
-        candidates,
-        lens,
-        opts.quads.max_hamming,
-        opts.threads,
-        &mut rejected,
-    );
+    let mut refined = refine_candidates(img, candidates, lens, opts, &mut rejected);
     // A board with no seed at all gets a second search, at full resolution on a copy
     // whose bright areas are grown by a pixel, for its ids only: Kalibr's crossing
     // squares touch every tag corner, and where blur and decimation keep the contact
@@ -280,7 +282,7 @@ pub fn detect_tags(
         again.retain(|c| ids.insert(c.id));
         let mut second = Vec::new();
         let found: BTreeMap<u32, grid::Found> =
-            refine_candidates(img, again, lens, max_h, opts.threads, &mut second)
+            refine_candidates(img, again, lens, opts, &mut second)
                 .into_iter()
                 .filter(|(id, f)| {
                     let reading = verify::read_tag(img, &f.refined.corners, lens, *id);
@@ -377,10 +379,16 @@ pub fn detect_tags(
             }
             let mut rej = Vec::new();
             let max_h = opts.quads.max_hamming;
-            let completed: Vec<(u32, grid::Found)> =
-                grid::complete(img, layout, seeds, lens, max_h, &mut rej)
-                    .into_iter()
-                    .collect();
+            let completed: Vec<(u32, grid::Found)> = grid::complete(
+                img,
+                layout,
+                seeds,
+                lens,
+                (max_h, opts.profile_spacing),
+                &mut rej,
+            )
+            .into_iter()
+            .collect();
             let fitted = par_map(&completed, opts.threads, |(id, f)| {
                 finish(*id, f, Some(layout))
             });
@@ -508,8 +516,7 @@ fn refine_candidates(
     img: &Gray,
     candidates: Vec<quads::Candidate>,
     lens: Lens,
-    max_hamming: u32,
-    threads: usize,
+    opts: &DetectOptions,
     rejected: &mut Vec<Rejection>,
 ) -> BTreeMap<u32, grid::Found> {
     let mut count: BTreeMap<u32, usize> = BTreeMap::new();
@@ -524,8 +531,8 @@ fn refine_candidates(
             reason: format!("tag {} appears {} times in the image", c.id, count[&c.id]),
         });
     }
-    let results = par_map(&unique, threads, |c| {
-        refine_candidate(img, c, lens, max_hamming)
+    let results = par_map(&unique, opts.threads, |c| {
+        refine_candidate(img, c, lens, opts)
     });
     let mut refined = BTreeMap::new();
     for (c, r) in unique.into_iter().zip(results) {
@@ -561,9 +568,10 @@ fn refine_candidate(
     img: &Gray,
     c: &quads::Candidate,
     lens: Lens,
-    max_hamming: u32,
+    opts: &DetectOptions,
 ) -> Option<refine::Refined> {
-    if let Some(r) = refine_quad(img, &c.corners, lens, QUAD_REACH) {
+    let spacing = opts.profile_spacing;
+    if let Some(r) = refine_quad(img, &c.corners, lens, QUAD_REACH, spacing) {
         return Some(r);
     }
     let q = &c.corners;
@@ -571,9 +579,9 @@ fn refine_candidate(
         .filter_map(|k| {
             let mut v = *q;
             v[k] = q[(k + 1) % 4] + q[(k + 3) % 4] - q[(k + 2) % 4];
-            let r = refine_quad(img, &v, lens, QUAD_REACH)?;
+            let r = refine_quad(img, &v, lens, QUAD_REACH, spacing)?;
             let reading = verify::read_tag(img, &r.corners, lens, c.id)?;
-            (reading.hamming <= max_hamming && reading.border_black >= 26).then_some(r)
+            (reading.hamming <= opts.quads.max_hamming && reading.border_black >= 26).then_some(r)
         })
         .min_by(|a, b| a.edge_rms.total_cmp(&b.edge_rms))
 }

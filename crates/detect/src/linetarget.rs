@@ -59,6 +59,7 @@ const L_SIDES: SideSampling = SideSampling {
     corner_clearance: 0.06,
     room: |side| 0.25 * side.shortest,
     corner_slack: 0.1,
+    spacing: 1.0,
 };
 
 /// Every line target in the image, ordered left to right (by the centroid of its
