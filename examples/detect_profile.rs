@@ -4,7 +4,8 @@
 //! detects the first N frames of every camera (all when omitted) and prints the median
 //! ms per image (the fastest of `REPEAT` runs each, default 1), the share of legible tags
 //! found and the corner RMS; `edge-only` turns the whole-tag fits off, `decimated` the
-//! full-resolution searches, `fast` both (`Quality::Fast`).
+//! full-resolution searches, `fast` both (`Quality::Fast`, its whole-tag fits below 30
+//! px); `FIT_BELOW=px` and `SPACING=px` (between edge profiles) override those options.
 use rigcal_detect::gray::Gray;
 use rigcal_detect::{detect_tags, DetectOptions};
 use std::collections::BTreeMap;
@@ -40,6 +41,9 @@ fn main() {
     }
     if let Some(px) = std::env::var("FIT_BELOW").ok().and_then(|v| v.parse().ok()) {
         opts.whole_fit_below = px;
+    }
+    if let Some(px) = std::env::var("SPACING").ok().and_then(|v| v.parse().ok()) {
+        opts.profile_spacing = px;
     }
     let repeat: usize = std::env::var("REPEAT")
         .ok()

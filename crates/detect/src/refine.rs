@@ -329,6 +329,12 @@ pub struct SideSampling {
     pub spacing: f64,
 }
 
+/// Fewest profiles of a measuring pass on a side (of at least as many pixels) whatever
+/// its spacing: the corners of small seeds measured from fewer wander enough that the
+/// neighbours predicted from them misread (fisheye boards of 12-20 px tags: 3 whole
+/// boards lost in 12 views at 3 px spacing, none with this floor).
+const MIN_FINE_PROFILES: f64 = 12.0;
+
 /// Profile spacing at which no two edge fits share a pixel: a third of the fits of one
 /// profile per pixel, for corners ~10 % noisier (tags of 46-80 px on a dense 1080p hall:
 /// 0.0092 against 0.0082 px sd).
@@ -501,7 +507,14 @@ fn refine_once(
         } else {
             COARSE_SPACING
         };
-        let samples = (len_px * span / spacing).ceil().max(6.0) as usize;
+        // A measuring pass thinned by its spacing keeps one profile per pixel up to
+        // MIN_FINE_PROFILES.
+        let floor = if fine {
+            (len_px * span).ceil().min(MIN_FINE_PROFILES)
+        } else {
+            0.0
+        };
+        let samples = (len_px * span / spacing).ceil().max(floor).max(6.0) as usize;
         let mut pts = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = t0 + span * (i as f64 + 0.5) / samples as f64;
