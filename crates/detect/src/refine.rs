@@ -188,8 +188,16 @@ pub const FIT_BAND: f64 = 1.0;
 /// every offset along the edge; `a, b, e, σ` by Gauss-Newton from the pixels within
 /// `half_window` of `e0` and one pixel either side of the profile. `None` when the fit
 /// does not settle (the caller keeps `e0`).
-fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f64) -> Option<f64> {
-    fit_step(img, p, n, e0, half_window, contrast).map(|x| x[2])
+fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, window: Window, contrast: f64) -> Option<f64> {
+    fit_step(img, p, n, e0, window, contrast).map(|x| x[2])
+}
+
+/// The pixels an edge fit reads: within `along` px of the edge along the profile and
+/// `across` px either side of it.
+#[derive(Clone, Copy, Debug)]
+struct Window {
+    along: f64,
+    across: f64,
 }
 
 /// The blur σ (px: the optics and the pixel's own area) of the edge that crosses the
@@ -199,7 +207,11 @@ fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, half_window: f64, contrast: f
 /// the four sides of one tag).
 pub fn edge_sigma(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64) -> Option<f64> {
     let (e, contrast) = edge_offset(img, p, n, reach, d, START_TOL)?;
-    fit_step(img, p, n, e, (d + 0.5).max(MIN_FIT_WINDOW), contrast).map(|x| x[3])
+    let window = Window {
+        along: (d + 0.5).max(MIN_FIT_WINDOW),
+        across: FIT_BAND,
+    };
+    fit_step(img, p, n, e, window, contrast).map(|x| x[3])
 }
 
 /// [`fit_edge`]'s step `(a, b, e, σ)`.
@@ -208,12 +220,12 @@ fn fit_step(
     p: Vec2,
     n: Vec2,
     e0: f64,
-    half_window: f64,
+    window: Window,
     contrast: f64,
 ) -> Option<nalgebra::Vector4<f64>> {
     let t = Vec2::new(-n.y, n.x);
     let centre = p + n * e0;
-    let r = half_window + 1.5;
+    let r = window.along.max(window.across) + 1.5;
     let (x0, x1) = ((centre.x - r).floor().max(0.0), (centre.x + r).ceil());
     let (y0, y1) = ((centre.y - r).floor().max(0.0), (centre.y + r).ceil());
     if x1 >= img.width as f64 || y1 >= img.height as f64 {
@@ -224,7 +236,7 @@ fn fit_step(
         for x in x0 as usize..=x1 as usize {
             let c = Vec2::new(x as f64, y as f64) - p;
             let s = n.dot(&c);
-            if t.dot(&c).abs() <= FIT_BAND && (s - e0).abs() <= half_window {
+            if t.dot(&c).abs() <= window.across && (s - e0).abs() <= window.along {
                 samples.push((s, img.data[y * img.width + x] as f64));
             }
         }
@@ -325,7 +337,8 @@ pub struct SideSampling {
     /// (seen: 11 px on a 190 px side at grazing view), while the sides' lines are right.
     pub corner_slack: f64,
     /// Distance (px) along a side between the measuring pass's profiles: 1 reads each
-    /// pixel in `2·FIT_BAND + 1` fits, [`INDEPENDENT_SPACING`] in one.
+    /// pixel in `2·FIT_BAND + 1` fits; wider, each fit reads the pixels half way to its
+    /// neighbours', so every pixel in one.
     pub spacing: f64,
 }
 
@@ -335,9 +348,10 @@ pub struct SideSampling {
 /// boards lost in 12 views at 3 px spacing, none with this floor).
 const MIN_FINE_PROFILES: f64 = 12.0;
 
-/// Profile spacing at which no two edge fits share a pixel: a third of the fits of one
-/// profile per pixel, for corners ~10 % noisier (tags of 46-80 px on a dense 1080p hall:
-/// 0.0092 against 0.0082 px sd).
+/// Profile spacing at which a fit of the default band reads no pixel another reads: a
+/// third of the fits of one profile per pixel (each reading half as many pixels again),
+/// for corners as good (tags of 46-80 px on a dense 1080p hall: 0.0084 against 0.0082 px
+/// sd; 0.0092 with the fits' bands left at ±1 px, which skipped a third of the pixels).
 pub const INDEPENDENT_SPACING: f64 = 2.0 * FIT_BAND + 1.0;
 
 /// What a side's room is judged from (raw pixels).
@@ -515,6 +529,9 @@ fn refine_once(
             0.0
         };
         let samples = (len_px * span / spacing).ceil().max(floor).max(6.0) as usize;
+        // Each fit reads the band of pixels half way to the next profile's, so that
+        // profiles wider apart than the band still read every pixel of the side.
+        let band = (0.5 * len_px * span / samples as f64).max(FIT_BAND);
         let mut pts = Vec::with_capacity(samples);
         for i in 0..samples {
             let t = t0 + span * (i as f64 + 0.5) / samples as f64;
@@ -526,8 +543,8 @@ fn refine_once(
             // are read nearer: the crossing is biased by where the edge falls between
             // pixel centres, the same all along a side near a pixel row (tags of 30-46 px
             // on a dense 1080p hall: 0.032 px sd, 0.011 with the fit).
-            let window = (d + 0.5).max(MIN_FIT_WINDOW).min(0.9 * room);
-            let fit = fine && window >= MIN_FIT_WINDOW;
+            let along = (d + 0.5).max(MIN_FIT_WINDOW).min(0.9 * room);
+            let fit = fine && along >= MIN_FIT_WINDOW;
             let tol = if fine && !fit {
                 CROSSING_TOL
             } else {
@@ -536,6 +553,10 @@ fn refine_once(
             if let Some((e, contrast)) = edge_offset(img, p, n, reach_here, d, tol) {
                 let e = if fit {
                     // Where the fit does not settle, the precise crossing instead.
+                    let window = Window {
+                        along,
+                        across: band,
+                    };
                     fit_edge(img, p, n, e, window, contrast)
                         .or_else(|| Some(edge_offset(img, p, n, reach_here, d, CROSSING_TOL)?.0))
                         .unwrap_or(e)
