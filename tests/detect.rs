@@ -770,8 +770,9 @@ fn threads_share_the_work_of_one_image_without_changing_it() {
 /// The two detection qualities on dense hall views (JPEG, vignetting, boards and wall
 /// tags, radtan and fisheye), scored against the true corners of every legible tag:
 /// `accurate` finds them all at ~0.01 px; `fast` (decimated search only, whole-tag fits
-/// under 30 px only) within its documented bounds, 99 % of the tags at ≤ 0.05 px and no
-/// wrong corner, and its corners are not `accurate`'s.
+/// under 30 px only, a third of the edge fits) within its documented bounds, 99 % of the
+/// tags at ≤ 0.025 px (0.0136 measured) and no wrong corner, and its corners are not
+/// `accurate`'s.
 #[test]
 fn both_detection_qualities_hold_their_bounds_on_dense_scenes() {
     use rigcal_synth::hall::{hall, Hall, Nuisance};
@@ -832,7 +833,7 @@ fn both_detection_qualities_hold_their_bounds_on_dense_scenes() {
     let (_, found, wrong, rms, fast) = score(Quality::Fast);
     eprintln!("fast: {found:.4} found, {wrong} wrong, {rms:.4} px");
     assert!(
-        found >= 0.99 && wrong == 0 && rms <= 0.05,
+        found >= 0.99 && wrong == 0 && rms <= 0.025,
         "fast: {found} found, {wrong} wrong, {rms} px"
     );
     assert_ne!(accurate, fast, "fast gave accurate's corners");

@@ -375,9 +375,10 @@ pub struct RigPose {
 
 /// How much work detection spends on an image (`--detect-quality`, job option
 /// `detection.quality`). `accurate`, the default, finds every tag a human could read at
-/// ~0.01 px. `fast` searches the decimated image only and fits whole only the tags under
-/// 30 px: about a third of the work on dense scenes, at the price of some small oblique
-/// single tags and a corner error ~4× larger (docs/performance.md, "Detection quality").
+/// ~0.01 px. `fast` searches the decimated image only, fits whole only the tags under
+/// 30 px and measures sides with a third of the edge fits: about a third of the work on
+/// dense scenes, at the price of some small oblique single tags and a corner error ~1.5×
+/// larger (docs/performance.md, "Detection quality" and "`fast`'s edge measurement").
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum DetectionQuality {

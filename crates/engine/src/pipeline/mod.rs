@@ -50,13 +50,14 @@ pub struct CalibOptions {
 /// little off): error/σ RMS 0.5-0.6, at most 2.3, where 0.03 px made the σ 5-6× the
 /// errors (docs/accuracy.md, "The corner-noise floor, after the fixes").
 ///
-/// `fast`: tags over 30 px keep their edge-measured corners (0.017-0.026 px RMS against
-/// the fits' 0.008), residual σ ~0.016 px; 0.03 px is the same ~2× margin: error/σ
-/// RMS 0.46, at most 1.76 on the hall (0.82 / 2.89 with the residual σ alone).
+/// `fast`: tags over 30 px keep their edge-measured corners (0.010-0.012 px RMS on the
+/// hall at 1024×576, residual σ 0.007-0.009 px); 0.015 px is the same ~2× margin:
+/// error/σ RMS ~0.5, at most ~1.2 on the hall and the planar drive (0.24 / 0.59 and
+/// 0.21 / 0.62 at the 0.03 px this floor was while those corners were 0.017-0.026 px).
 pub fn detected_corner_sigma_floor_px(quality: DetectionQuality) -> f64 {
     match quality {
         DetectionQuality::Accurate => 0.01,
-        DetectionQuality::Fast => 0.03,
+        DetectionQuality::Fast => 0.015,
     }
 }
 
