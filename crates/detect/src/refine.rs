@@ -185,9 +185,9 @@ pub const FIT_BAND: f64 = 1.0;
 /// vertical in the ring's auxiliary image 7, ±0.006 px with this fit). Model: a pixel
 /// centre at signed distance `s` along the profile has grey level `a + b·Φ((s − e)/σ)`
 /// (a step blurred by the optics and the pixel's own area, close to Gaussian), the same at
-/// every offset along the edge; `a, b, e, σ` by Gauss-Newton from the pixels within
-/// `half_window` of `e0` and one pixel either side of the profile. `None` when the fit
-/// does not settle (the caller keeps `e0`).
+/// every offset along the edge; `a, b, e, σ` by Gauss-Newton from the pixels of `window`
+/// round `e0` on the profile. `None` when the fit does not settle (the caller keeps
+/// `e0`).
 fn fit_edge(img: &Gray, p: Vec2, n: Vec2, e0: f64, window: Window, contrast: f64) -> Option<f64> {
     fit_step(img, p, n, e0, window, contrast).map(|x| x[2])
 }
@@ -636,12 +636,10 @@ mod tests {
         assert!((p - Vec2::new(3.0, -2.0)).norm() < 1e-12);
     }
 
-    /// A dark square turned 1° (its sides sweep every phase between pixel centres slowly,
-    /// the worst case for interpolated crossings), rendered with blur and no noise:
-    /// corners to 0.02 px from rough corners 0.7 px off (0.006-0.015 measured; the
-    /// interpolated crossings alone gave 0.036-0.049).
-    #[test]
-    fn corners_of_a_nearly_axis_aligned_square_are_exact() {
+    /// A dark square `half · 200` px across turned 1° (its sides sweep every phase between
+    /// pixel centres slowly, the worst case for interpolated crossings), rendered with
+    /// blur and no noise, and its true corners.
+    fn turned_square(half: f64) -> (Gray, [Vec2; 4]) {
         use rigcal_core::geometry::Pose;
         use rigcal_synth::render::{render, RenderOptions};
         let (f, size) = (100.0, 121u32);
@@ -650,7 +648,6 @@ mod tests {
         let pose = Pose::new(nalgebra::Matrix3::identity(), Vec3::new(0.0, 0.0, 1.0));
         let turn = 1f64.to_radians();
         let (cs, sn) = (turn.cos(), turn.sin());
-        let half = 0.3; // board units: 60 px across
         let inside = move |x: f64, y: f64| {
             let (u, v) = (cs * x + sn * y, -sn * x + cs * y);
             u.abs() < half && v.abs() < half
@@ -660,22 +657,47 @@ mod tests {
             ..Default::default()
         };
         let img = render(&cam, &pose, &|x, y| Some(!inside(x, y)), &opts);
-        let gray = Gray::from_luma8(&img);
-        let truth: [Vec2; 4] =
-            [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| {
-                let (x, y) = (half * a, half * b);
-                Vec2::new(c + f * (cs * x - sn * y), c + f * (sn * x + cs * y))
-            });
-        let rough = [
+        let truth = [(-1.0, -1.0), (1.0, -1.0), (1.0, 1.0), (-1.0, 1.0)].map(|(a, b)| {
+            let (x, y) = (half * a, half * b);
+            Vec2::new(c + f * (cs * x - sn * y), c + f * (sn * x + cs * y))
+        });
+        (Gray::from_luma8(&img), truth)
+    }
+
+    /// Rough corners 0.7 px off, as the quad detector gives them.
+    fn rough(truth: &[Vec2; 4]) -> [Vec2; 4] {
+        [
             truth[0] + Vec2::new(0.7, -0.4),
             truth[1] + Vec2::new(-0.5, 0.6),
             truth[2] + Vec2::new(0.3, 0.7),
             truth[3] + Vec2::new(-0.7, -0.2),
-        ];
-        let r = refine_quad(&gray, &rough, Lens(None), 2.0, 1.0).expect("refined");
+        ]
+    }
+
+    /// A 60 px square: corners to 0.02 px (0.006-0.015 measured; the interpolated
+    /// crossings alone gave 0.036-0.049).
+    #[test]
+    fn corners_of_a_nearly_axis_aligned_square_are_exact() {
+        let (gray, truth) = turned_square(0.3);
+        let r = refine_quad(&gray, &rough(&truth), Lens(None), 2.0, 1.0).expect("refined");
         for k in 0..4 {
             let err = (r.corners[k] - truth[k]).norm();
             assert!(err < 0.02, "corner {k}: {err:.4} px");
+        }
+    }
+
+    /// A 40 px square, whose border cell (5 px) reads the levels nearer than the fit's
+    /// ±2.5 px: its sides are fitted all the same (interpolated crossings left corners
+    /// 0.05-0.12 px off on such tags), with a profile every pixel or every 3 px alike.
+    #[test]
+    fn a_tag_with_a_narrow_border_cell_is_fitted_at_either_spacing() {
+        let (gray, truth) = turned_square(0.2);
+        for spacing in [1.0, INDEPENDENT_SPACING] {
+            let r = refine_quad(&gray, &rough(&truth), Lens(None), 2.0, spacing).expect("refined");
+            for k in 0..4 {
+                let err = (r.corners[k] - truth[k]).norm();
+                assert!(err < 0.02, "spacing {spacing}, corner {k}: {err:.4} px");
+            }
         }
     }
 }
