@@ -9,6 +9,7 @@
 use super::gray::Gray;
 use super::refine::{refine_quad, Lens, Refined};
 use super::verify::read_tag;
+use super::DetectOptions;
 use rigcal_core::geometry::homography::homography;
 use rigcal_core::geometry::{Mat3, Vec2, Vec3};
 use rigcal_core::target::board::GridLayout;
@@ -129,14 +130,14 @@ pub fn inconsistent(
 }
 
 /// Complete and check one board. `seeds` are the refined quad-detector tags whose ids
-/// belong to the board (at most one per id); predicted tags are measured with profiles
-/// `spacing` px apart ([`super::refine::SideSampling::spacing`]).
+/// belong to the board (at most one per id); predicted tags are measured and read as
+/// `opts` says (its profile spacing and bit errors).
 pub fn complete(
     img: &Gray,
     layout: &GridLayout,
     seeds: BTreeMap<u32, Found>,
     lens: Lens,
-    (max_hamming, spacing): (u32, f64),
+    opts: &DetectOptions,
     rejected: &mut Vec<(u32, String)>,
 ) -> BTreeMap<u32, Found> {
     let mut found = BTreeMap::new();
@@ -216,14 +217,16 @@ pub fn complete(
             let Some(pred) = predict(layout, &h, id, lens, img) else {
                 continue;
             };
-            let Some(refined) = refine_quad(img, &pred, lens, PREDICTION_REACH, spacing) else {
+            let Some(refined) =
+                refine_quad(img, &pred, lens, PREDICTION_REACH, opts.profile_spacing)
+            else {
                 continue;
             };
             let Some(reading) = read_tag(img, &refined.corners, lens, id) else {
                 continue;
             };
             let strong = reading.margin >= (0.3 * refined.contrast).max(10.0);
-            if reading.hamming <= max_hamming && reading.border_black >= 26 && strong {
+            if reading.hamming <= opts.quads.max_hamming && reading.border_black >= 26 && strong {
                 if let Some(p) = lens.quad_to_plane(&refined.corners) {
                     plane.insert(id, p);
                     found.insert(

@@ -378,17 +378,10 @@ pub fn detect_tags(
                 continue;
             }
             let mut rej = Vec::new();
-            let max_h = opts.quads.max_hamming;
-            let completed: Vec<(u32, grid::Found)> = grid::complete(
-                img,
-                layout,
-                seeds,
-                lens,
-                (max_h, opts.profile_spacing),
-                &mut rej,
-            )
-            .into_iter()
-            .collect();
+            let completed: Vec<(u32, grid::Found)> =
+                grid::complete(img, layout, seeds, lens, opts, &mut rej)
+                    .into_iter()
+                    .collect();
             let fitted = par_map(&completed, opts.threads, |(id, f)| {
                 finish(*id, f, Some(layout))
             });
