@@ -310,15 +310,20 @@ pub fn detect_tags(
     let mut tags = Vec::new();
     let mut points = Vec::new();
     let mut dropped_corners = Vec::new();
+    // Where a tag fitted whole has no edge blur of its own (its sides too close to its
+    // bits for the edge fit), the image's starts the fit.
+    let image_blur =
+        rigcal_solve::loss::median(refined.values().filter_map(|f| f.refined.blur).collect());
     let finish = |id: u32, f: &grid::Found, layout: Option<&GridLayout>| {
         if opts.whole_fit_below > 0.0 {
             whole_tag_corners(
                 img,
-                &f.refined.corners,
+                &f.refined,
                 lens,
                 id,
                 layout,
                 opts.whole_fit_below,
+                image_blur,
             )
         } else {
             (f.refined.corners, [None; 4])
@@ -462,12 +467,14 @@ fn measured_inside(img: &Gray, p: &Vec2) -> bool {
 /// edge-refined corners stand, unless the tag is too small for them.
 fn whole_tag_corners(
     img: &Gray,
-    corners: &[Vec2; 4],
+    refined: &refine::Refined,
     lens: Lens,
     id: u32,
     layout: Option<&GridLayout>,
     below: f64,
+    image_blur: Option<f64>,
 ) -> Measured {
+    let corners = &refined.corners;
     if tagfit::shallowest_extent(corners) >= below {
         return (*corners, [None; 4]);
     }
@@ -477,7 +484,14 @@ fn whole_tag_corners(
         },
         None => tagfit::Surround::Single,
     };
-    match tagfit::fit_whole_tag(img, corners, lens, id, surround) {
+    match tagfit::fit_whole_tag(
+        img,
+        corners,
+        lens,
+        id,
+        surround,
+        refined.blur.or(image_blur),
+    ) {
         Some(f) => (f.corners, f.misfit.map(|m| m.then_some(Unmeasured::Misfit))),
         // Under 2 px per cell the edges can be a pixel off (a side measured against the
         // bits beside it): without the fit such a tag has no corner worth reporting.
