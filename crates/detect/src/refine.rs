@@ -29,6 +29,15 @@ impl Lens<'_> {
         }
     }
 
+    /// [`to_plane`](Self::to_plane) of a pixel near one whose plane point `near` is
+    /// known (a few pixels off): fewer iterations of the lens's inverse.
+    pub fn to_plane_near(&self, px: Vec2, near: Vec2) -> Option<Vec2> {
+        match self.0 {
+            Some(c) => c.unproject_near(&px, near),
+            None => Some(px),
+        }
+    }
+
     /// A quad's corners in the plane.
     pub fn quad_to_plane(&self, c: &[Vec2; 4]) -> Option<[Vec2; 4]> {
         Some([
@@ -79,12 +88,16 @@ pub struct Refined {
 /// cannot run; elsewhere it is a start and a coarse `tol` saves most of the samples).
 fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Option<(f64, f64)> {
     let at = |s: f64| img.sample(p + n * s);
-    // Coarse: the steepest dark→bright step, from one sampling of the profile every ¼ px
-    // (the step at s is I(s + ½) − I(s − ½), two samples apart). The samples stay on the
-    // stack for the usual reaches.
-    const STEP: f64 = 0.25;
+    // Coarse: the steepest dark→bright step, from one sampling of the profile every
+    // STEP px (the step at s is I(s + ½) − I(s − ½), `2·half` samples apart). The
+    // samples stay on the stack for the usual reaches. Every ½ px: the steepest step
+    // only has to land in the bisection's bracket, and at ¼ px (twice the samples) the
+    // corners of hall and fisheye captures came out the same to four digits of their
+    // RMS, 5 % slower.
+    const STEP: f64 = 0.5;
+    let half = (0.5 / STEP).round() as usize;
     let k = (reach / STEP).ceil() as i32;
-    let count = (2 * k + 5) as usize;
+    let count = 2 * k as usize + 1 + 2 * half;
     let mut stack = [0.0; 64];
     let mut heap = Vec::new();
     let levels: &mut [f64] = if count <= stack.len() {
@@ -93,15 +106,15 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
         heap.resize(count, 0.0);
         &mut heap
     };
-    // Sample `i` is at s = (i − k − 2)·¼.
-    let s_of = |i: usize| (i as f64 - k as f64 - 2.0) * STEP;
+    // Sample `i` is at s = (i − k − half)·STEP.
+    let s_of = |i: usize| (i as f64 - k as f64 - half as f64) * STEP;
     for (i, l) in levels.iter_mut().enumerate() {
         *l = at(s_of(i))?;
     }
     let levels = &*levels;
     let mut best = (f64::NEG_INFINITY, 0.0);
     for i in 0..=(2 * k) as usize {
-        let g = levels[i + 4] - levels[i];
+        let g = levels[i + 2 * half] - levels[i];
         if g > best.0 {
             best = (g, (i as i32 - k) as f64 * STEP);
         }
@@ -111,7 +124,7 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
     }
     // The sample at or below `s`, where sampled.
     let index_of = |s: f64| -> Option<usize> {
-        let i = (s / STEP).floor() as i64 + k as i64 + 2;
+        let i = (s / STEP).floor() as i64 + k as i64 + half as i64;
         usize::try_from(i).ok().filter(|&i| i < levels.len())
     };
     let mut e = best.1;
@@ -124,8 +137,8 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
         }
         let mid = 0.5 * (dark + bright);
         // Bisection of I(s) = mid on [e − d, e + d] (monotone across a clean edge). The
-        // bracket is first narrowed on the ¼ px samples already taken: the bisection's
-        // own first steps would read the same profile at about that spacing.
+        // bracket is first narrowed on the samples already taken: the bisection's own
+        // first steps would read the same profile at about that spacing.
         let (mut lo, mut hi) = (e - d, e + d);
         if let (Some(i0), Some(i1)) = (index_of(lo), index_of(hi)) {
             // The samples strictly inside (lo, hi), in order: the last one below `mid`
@@ -561,7 +574,8 @@ fn refine_once(
         let mut fitted: Option<nalgebra::Vector4<f64>> = None;
         for i in 0..samples {
             let t = t0 + span * (i as f64 + 0.5) / samples as f64;
-            let (p, tangent) = lens.to_pixel_along(a + (b - a) * t, b - a)?;
+            let on_side = a + (b - a) * t;
+            let (p, tangent) = lens.to_pixel_along(on_side, b - a)?;
             let n = Vec2::new(tangent.y, -tangent.x) * outward;
             // The pixel model needs the levels either side: ±2.5 px at least (below
             // that its four unknowns are poorly separated and the interpolated crossing
@@ -593,7 +607,7 @@ fn refine_once(
                 } else {
                     e
                 };
-                if let Some(q) = lens.to_plane(p + n * e) {
+                if let Some(q) = lens.to_plane_near(p + n * e, on_side) {
                     pts.push((q, p + n * e));
                     contrast_sum += contrast;
                     contrast_n += 1;

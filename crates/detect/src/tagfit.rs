@@ -303,10 +303,19 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
     if gw < 3 || gh < 3 {
         return None;
     }
-    let grid: Vec<Vec2> = (0..gh)
-        .flat_map(|j| (0..gw).map(move |i| (i, j)))
-        .map(|(i, j)| lens.to_plane(origin + Vec2::new((i * COARSE) as f64, (j * COARSE) as f64)))
-        .collect::<Option<_>>()?;
+    // Each node's inverse starts at its neighbour's, COARSE px away.
+    let mut grid: Vec<Vec2> = Vec::with_capacity(gw * gh);
+    for j in 0..gh {
+        for i in 0..gw {
+            let px = origin + Vec2::new((i * COARSE) as f64, (j * COARSE) as f64);
+            let q = match (i, j) {
+                (0, 0) => lens.to_plane(px),
+                (0, _) => lens.to_plane_near(px, grid[(j - 1) * gw]),
+                _ => lens.to_plane_near(px, grid[j * gw + i - 1]),
+            };
+            grid.push(q?);
+        }
+    }
     // Plane point at raw-pixel offset `(x, y)` from `origin` (bilinear), and its
     // derivative: where the pixels compared fall in the pattern, and how they move.
     let plane_at = |x: f64, y: f64| -> (Vec2, nalgebra::Matrix2<f64>) {
@@ -422,11 +431,15 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
 
 /// The homography from pattern cells to the plane for raw-pixel corners `c`.
 fn pattern_to_plane(c: &[Vec2; 4], lens: Lens) -> Option<Mat3> {
+    pattern_homography(&lens.quad_to_plane(c)?)
+}
+
+/// The homography from pattern cells to the plane for the corners' plane points.
+fn pattern_homography(plane: &[Vec2; 4]) -> Option<Mat3> {
     // The unit square's corners (0,0), (1,0), (1,1), (0,1) are the pattern's corners
     // 3, 2, 1, 0 (`pattern_corner`) over 8 cells.
-    let plane = [3, 2, 1, 0].map(|k| lens.to_plane(c[k]));
-    let plane = [plane[0]?, plane[1]?, plane[2]?, plane[3]?];
-    Some(square_to_quad(&plane)? * Mat3::new(0.125, 0.0, 0.0, 0.0, 0.125, 0.0, 0.0, 0.0, 1.0))
+    let square = [3, 2, 1, 0].map(|k| plane[k]);
+    Some(square_to_quad(&square)? * Mat3::new(0.125, 0.0, 0.0, 0.0, 0.125, 0.0, 0.0, 0.0, 1.0))
 }
 
 /// The sharp pattern on the sub-sample grid: the white and surround fractions of each
@@ -806,18 +819,21 @@ fn jacobian(
     };
     // How the pattern point at each pixel moves in the plane per unit of each corner
     // coordinate.
-    let h = pattern_to_plane(&c, lens)?;
+    let plane = lens.quad_to_plane(&c)?;
+    let h = pattern_homography(&plane)?;
     let hinv = h.try_inverse()?;
-    // `∂H/∂cⱼ` (both `H` are scaled alike, `H₃₃ = 1`).
+    // `∂H/∂cⱼ` (both `H` are scaled alike, `H₃₃ = 1`): one corner moved at a time.
     let dh: Vec<Mat3> = (0..8)
         .map(|j| {
-            let mut cj = c;
-            if j % 2 == 0 {
-                cj[j / 2].x += CORNER_STEP;
+            let k = j / 2;
+            let step = if j % 2 == 0 {
+                Vec2::new(CORNER_STEP, 0.0)
             } else {
-                cj[j / 2].y += CORNER_STEP;
-            }
-            Some((pattern_to_plane(&cj, lens)? - h) / CORNER_STEP)
+                Vec2::new(0.0, CORNER_STEP)
+            };
+            let mut moved = plane;
+            moved[k] = lens.to_plane_near(c[k] + step, plane[k])?;
+            Some((pattern_homography(&moved)? - h) / CORNER_STEP)
         })
         .collect::<Option<_>>()?;
     let mut jac = Vec::with_capacity(reg.pixels.len());
