@@ -970,7 +970,7 @@ const SMOOTHING_PX: f64 = AA_SUBSAMPLES / SUB as f64;
 /// smoothing; a box of width `w` has variance `w²/12` in any direction), no sharper than
 /// [`MIN_START_SIGMA`]; a typical lens's where no edge was fitted. Hall and fisheye
 /// renders whose tags settle at 0.41 (edges 0.58) took 3.1-3.4 iterations from 0.9,
-/// 2.2-2.6 from 0.41.
+/// 2.2-2.8 from 0.6.
 fn start_sigma(edge_blur: Option<f64>) -> f64 {
     let Some(b) = edge_blur.filter(|b| b.is_finite()) else {
         return 0.9;

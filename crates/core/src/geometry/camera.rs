@@ -147,9 +147,9 @@ impl Camera {
     }
 
     /// [`unproject`](Self::unproject) with Newton started at `near`, the undistorted
-    /// coordinates of a pixel close to `uv` (a few pixels off, on a tag's side): two or
-    /// three iterations where a start at the distorted coordinates takes five to eight
-    /// on a fisheye's periphery. The same answer, to the same tolerance, as long as
+    /// coordinates of a pixel close to `uv` (a few pixels off, on a tag's side): three
+    /// steps where a start at the distorted coordinates takes four or five (the test
+    /// cameras' strong radtan and fisheye, over the image). The same answer, to the same tolerance, as long as
     /// `near` is near: a distortion polynomial folds back far out, and Newton from a
     /// point beyond the fold finds the other root.
     pub fn unproject_near(&self, uv: &Vec2, near: Vec2) -> Option<Vec2> {
