@@ -924,9 +924,9 @@ fn max_shift(start: &[Vec2; 4]) -> f64 {
 
 /// Fit the tag `id` whose corners (raw pixels, the detector's order) are roughly `start`
 /// (within a few tenths of a pixel), its edges blurred by about `edge_blur`
-/// ([`crate::refine::RefinedPolygon::blur`]) where that is known. `None` when the fit does not settle, the levels make
-/// no tag (white not brighter than black), or the corners run farther than
-/// [`max_shift`]. Corners whose surround the pattern does not explain are marked
+/// ([`crate::refine::RefinedPolygon::blur`]) where that is known. `None` when the fit
+/// does not settle, the levels make no tag (white not brighter than black), or the
+/// corners run farther than [`max_shift`]. Corners whose surround the pattern does not explain are marked
 /// ([`WholeFit::misfit`]).
 pub fn fit_whole_tag(
     img: &Gray,

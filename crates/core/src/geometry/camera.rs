@@ -149,9 +149,9 @@ impl Camera {
     /// [`unproject`](Self::unproject) with Newton started at `near`, the undistorted
     /// coordinates of a pixel close to `uv` (a few pixels off, on a tag's side): three
     /// steps where a start at the distorted coordinates takes four or five (the test
-    /// cameras' strong radtan and fisheye, over the image). The same answer, to the same tolerance, as long as
-    /// `near` is near: a distortion polynomial folds back far out, and Newton from a
-    /// point beyond the fold finds the other root.
+    /// cameras' strong radtan and fisheye, over the image). The same answer, to the
+    /// same tolerance, as long as `near` is near: a distortion polynomial folds back far
+    /// out, and Newton from a point beyond the fold finds the other root.
     pub fn unproject_near(&self, uv: &Vec2, near: Vec2) -> Option<Vec2> {
         self.unproject_from(uv, Some(near))
             .or_else(|| self.unproject(uv))
