@@ -1173,6 +1173,11 @@ mod tests {
         })
     }
 
+    /// The fit from `start`, with no edge blur to start it from; it must settle.
+    fn fitted(img: &Gray, start: &[Vec2; 4], lens: Lens, id: u32, surround: Surround) -> WholeFit {
+        fit_whole_tag(img, start, lens, id, surround, None).expect("the fit settles")
+    }
+
     /// A tag of the 640×480 scene at least 60 px from every border.
     fn well_in_view(s: &TagScene) -> (u32, &[Vec2; 4]) {
         let (&id, truth) = s
@@ -1343,15 +1348,7 @@ mod tests {
                     let start = [0, 1, 2, 3].map(|k| {
                         truth[k] + Vec2::new(0.3, -0.2) * if k % 2 == 0 { 1.0 } else { -1.0 }
                     });
-                    let f = fit_whole_tag(
-                        &img,
-                        &start,
-                        Lens(Some(&s.camera)),
-                        id,
-                        Surround::Single,
-                        None,
-                    )
-                    .expect("the fit settles");
+                    let f = fitted(&img, &start, Lens(Some(&s.camera)), id, Surround::Single);
                     assert!(
                         (f.sigma - 0.8).abs() < 0.06,
                         "{lens:?} {px} px {obl}°: σ {}",
@@ -1399,8 +1396,7 @@ mod tests {
             let edges = crate::refine::refine_quad(&img, &rough, lens, 4.0, 1.0)
                 .expect("the edges are measured");
             let blur = edges.blur.expect("the sides are fitted");
-            let typical = fit_whole_tag(&img, &edges.corners, lens, id, Surround::Single, None)
-                .expect("the fit settles");
+            let typical = fitted(&img, &edges.corners, lens, id, Surround::Single);
             let settled = (typical.sigma.powi(2) - SMOOTHING_PX.powi(2) / 12.0).sqrt();
             let start = start_sigma(Some(blur));
             println!("optics {optics}: edges {blur:.3}, start {start:.3}, settled {settled:.3}");
@@ -1459,15 +1455,7 @@ mod tests {
             }
         }
         let start = [0, 1, 2, 3].map(|k| truth[k] + Vec2::new(0.2, -0.1));
-        let f = fit_whole_tag(
-            &img,
-            &start,
-            Lens(Some(&s.camera)),
-            id,
-            Surround::Single,
-            None,
-        )
-        .expect("the fit settles");
+        let f = fitted(&img, &start, Lens(Some(&s.camera)), id, Surround::Single);
         let worst = (0..4)
             .map(|k| (f.corners[k] - truth[k]).norm())
             .fold(0.0, f64::max);
@@ -1502,15 +1490,7 @@ mod tests {
                 }
             }
             let start = [0, 1, 2, 3].map(|k| truth[k] + Vec2::new(0.15, 0.1));
-            let f = fit_whole_tag(
-                &b,
-                &start,
-                Lens(Some(&s.camera)),
-                id,
-                Surround::Single,
-                None,
-            )
-            .expect("the fit settles");
+            let f = fitted(&b, &start, Lens(Some(&s.camera)), id, Surround::Single);
             for k in 0..4 {
                 sq += (f.corners[k] - truth[k]).norm_squared();
                 n += 1;
@@ -1539,15 +1519,7 @@ mod tests {
             Vec2::new(0.3, -0.3),
         ];
         let start: [Vec2; 4] = std::array::from_fn(|k| truth[k] + off[k]);
-        let fit = fit_whole_tag(
-            &img,
-            &start,
-            lens,
-            id,
-            Surround::Grid { gap_cells: 2.4 },
-            None,
-        )
-        .expect("the fit settles");
+        let fit = fitted(&img, &start, lens, id, Surround::Grid { gap_cells: 2.4 });
         for k in 0..4 {
             let e = (fit.corners[k] - truth[k]).norm();
             assert!(e < 0.1, "corner {k}: {e:.3} px from the truth");
@@ -1576,15 +1548,7 @@ mod tests {
                 .collect(),
         };
         let start = truth.map(|c| c + Vec2::new(0.2, -0.15));
-        let fit = fit_whole_tag(
-            &img,
-            &start,
-            lens,
-            id,
-            Surround::Grid { gap_cells: 2.4 },
-            None,
-        )
-        .expect("the fit settles");
+        let fit = fitted(&img, &start, lens, id, Surround::Grid { gap_cells: 2.4 });
         assert_eq!(fit.misfit, [false; 4]);
         for k in 0..4 {
             let e = (fit.corners[k] - truth[k]).norm();
@@ -1617,15 +1581,13 @@ mod tests {
                 }
             }
             let start = truth.map(|c| c + Vec2::new(0.2, -0.15));
-            let fit = fit_whole_tag(
+            let fit = fitted(
                 &covered,
                 &start,
                 lens,
                 id,
                 Surround::Grid { gap_cells: 2.4 },
-                None,
-            )
-            .expect("the fit settles");
+            );
             for k in 0..4 {
                 let e = (fit.corners[k] - truth[k]).norm();
                 println!(
