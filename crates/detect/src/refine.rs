@@ -719,16 +719,21 @@ mod tests {
         ]
     }
 
+    /// The square's corners refined from [`rough`] ones at `spacing` are within 0.02 px.
+    fn assert_refined_within_0_02(gray: &Gray, truth: &[Vec2; 4], spacing: f64) {
+        let r = refine_quad(gray, &rough(truth), Lens(None), 2.0, spacing).expect("refined");
+        for k in 0..4 {
+            let err = (r.corners[k] - truth[k]).norm();
+            assert!(err < 0.02, "spacing {spacing}, corner {k}: {err:.4} px");
+        }
+    }
+
     /// A 60 px square: corners to 0.02 px (0.006-0.015 measured; the interpolated
     /// crossings alone gave 0.036-0.049).
     #[test]
     fn corners_of_a_nearly_axis_aligned_square_are_exact() {
         let (gray, truth) = turned_square(0.3);
-        let r = refine_quad(&gray, &rough(&truth), Lens(None), 2.0, 1.0).expect("refined");
-        for k in 0..4 {
-            let err = (r.corners[k] - truth[k]).norm();
-            assert!(err < 0.02, "corner {k}: {err:.4} px");
-        }
+        assert_refined_within_0_02(&gray, &truth, 1.0);
     }
 
     /// A 40 px square, whose border cell (5 px) reads the levels nearer than the fit's
@@ -738,11 +743,7 @@ mod tests {
     fn a_tag_with_a_narrow_border_cell_is_fitted_at_either_spacing() {
         let (gray, truth) = turned_square(0.2);
         for spacing in [1.0, INDEPENDENT_SPACING] {
-            let r = refine_quad(&gray, &rough(&truth), Lens(None), 2.0, spacing).expect("refined");
-            for k in 0..4 {
-                let err = (r.corners[k] - truth[k]).norm();
-                assert!(err < 0.02, "spacing {spacing}, corner {k}: {err:.4} px");
-            }
+            assert_refined_within_0_02(&gray, &truth, spacing);
         }
     }
 
