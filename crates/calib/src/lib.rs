@@ -9,6 +9,7 @@ pub mod pnp;
 pub mod rig_ba;
 pub mod trajectory;
 pub mod twoview;
+pub mod undetermined;
 pub mod vanishing;
 pub mod verdict;
 

@@ -262,8 +262,37 @@ pub fn refine(
     };
     // Report observability from the data alone: the holding priors are taken out.
     let priors = std::mem::take(&mut problem.priors);
-    let information = problem.extrinsic_information(&Loss::Squared);
+    let mut information = problem.extrinsic_information(&Loss::Squared);
+    let mut added = Vec::new();
+    // What nothing held from the start and the data leave undetermined goes back to
+    // its held value, as the held heights are (0, or the session's height prior).
+    if let Some((cams, info)) = &information {
+        let null = crate::diagnostics::null_directions(info, decision_sigma);
+        let null: Vec<DVector<f64>> =
+            crate::diagnostics::orthogonalised(&held_directions, null.into_iter().map(|v| (v, ())))
+                .into_iter()
+                .map(|(v, _)| v)
+                .collect();
+        let axis = nalgebra::Vector3::from(init.motion.axis).normalize();
+        let held = |c: usize, u: &nalgebra::Vector3<f64>| {
+            let along = axis.dot(u);
+            match session.height_priors[c] {
+                Some(h) if along.abs() > 0.99 => h * along,
+                _ => 0.0,
+            }
+        };
+        let settle = |p: &mut BundleProblem| {
+            p.solve(&lm(Loss::Squared));
+        };
+        let moved =
+            crate::undetermined::recentre(&mut problem, cams, &null, held, sigma_px, settle);
+        if !moved.is_empty() {
+            information = problem.extrinsic_information(&Loss::Squared);
+        }
+        added = moved;
+    }
     problem.priors = priors;
+    problem.priors.extend(added);
     RigBaOutput {
         problem,
         keys: inlier_keys,
