@@ -178,45 +178,16 @@ mod tests {
                 )
             })
             .collect();
-        let mut points = Vec::new();
-        let mut observations = Vec::new();
-        for c in 0..2 {
-            for i in 0..12 {
-                let p_cam = Vec3::new(
-                    -0.5 + 0.09 * i as f64,
-                    0.35 * ((i % 3) as f64 - 1.0),
-                    3.0 + 0.4 * (i % 4) as f64,
-                );
-                points.push((world_from_rig[3] * rig_from_cam[c]).apply(&p_cam));
-                for rig in 0..world_from_rig.len() {
-                    observations.push(Obs {
-                        rig,
-                        cam: c,
-                        point: PointRef::Free(points.len() - 1),
-                        uv: Vec2::zeros(),
-                    });
-                }
-            }
-        }
-        if shared {
-            // The second camera's last point, in front of the reference too.
-            observations.push(Obs {
-                rig: 5,
-                cam: 0,
-                point: PointRef::Free(points.len() - 1),
-                uv: Vec2::zeros(),
-            });
-        }
         let mut p = BundleProblem {
             cameras: vec![cam.clone(), cam],
             rig_from_cam,
             cam_fixed: vec![true, false],
             world_from_rig,
             rig_fixed: (0..8).map(|k| k == 0).collect(),
-            points,
+            points: vec![],
             world_from_body: vec![],
             body_fixed: vec![],
-            observations,
+            observations: vec![],
             // The metric scale: two of the reference's points a measured distance apart.
             distances: vec![DistanceConstraint {
                 a: PointRef::Free(0),
@@ -227,12 +198,27 @@ mod tests {
             priors: vec![],
             pixel_sigma: 1.0,
         };
-        for i in 0..p.observations.len() {
-            let r = p
-                .residual(&p.observations[i])
-                .expect("in front of its camera");
-            p.observations[i].uv += r;
+        for c in 0..2 {
+            let world_from_cam = p.world_from_rig[3] * p.rig_from_cam[c];
+            for i in 0..12 {
+                let p_cam = Vec3::new(
+                    -0.5 + 0.09 * i as f64,
+                    0.35 * ((i % 3) as f64 - 1.0),
+                    3.0 + 0.4 * (i % 4) as f64,
+                );
+                p.add_point_seen_from_every_rig(world_from_cam.apply(&p_cam), c);
+            }
         }
+        if shared {
+            // The second camera's last point, in front of the reference too.
+            p.observations.push(Obs {
+                rig: 5,
+                cam: 0,
+                point: PointRef::Free(p.points.len() - 1),
+                uv: Vec2::zeros(),
+            });
+        }
+        assert_eq!(p.observe_exactly(), 0, "every point in front of its camera");
         p.distances[0].distance = (p.points[0] - p.points[11]).norm();
         p
     }

@@ -430,6 +430,36 @@ impl BundleProblem {
         self.residual_from(o, &self.cam_from_world(o.rig, o.cam))
     }
 
+    /// Set every observation's pixel to where its point projects now: the exact
+    /// observations of a problem built from its truth (tests, synthetic studies).
+    /// Returns how many could not be projected (behind their camera); those keep theirs.
+    pub fn observe_exactly(&mut self) -> usize {
+        let mut behind = 0;
+        for i in 0..self.observations.len() {
+            match self.residual(&self.observations[i]) {
+                Some(r) => self.observations[i].uv += r,
+                None => behind += 1,
+            }
+        }
+        behind
+    }
+
+    /// Add a free point at `world` that camera `cam` sees from every rig pose (its
+    /// pixels set by [`Self::observe_exactly`]); returns its index.
+    pub fn add_point_seen_from_every_rig(&mut self, world: Vec3, cam: usize) -> usize {
+        self.points.push(world);
+        let p = self.points.len() - 1;
+        for rig in 0..self.world_from_rig.len() {
+            self.observations.push(Obs {
+                rig,
+                cam,
+                point: PointRef::Free(p),
+                uv: Vec2::zeros(),
+            });
+        }
+        p
+    }
+
     fn cam_from_world(&self, rig: usize, cam: usize) -> Pose {
         (self.world_from_rig[rig] * self.rig_from_cam[cam]).inverse()
     }
@@ -1916,34 +1946,14 @@ mod tests {
                 )
             })
             .collect();
-        let mut points = Vec::new();
-        let mut observations = Vec::new();
-        for c in 0..2 {
-            for i in 0..8 {
-                let p_cam = Vec3::new(
-                    -0.4 + 0.11 * i as f64,
-                    0.3 * ((i % 3) as f64 - 1.0),
-                    2.0 + 0.1 * (i % 4) as f64,
-                );
-                let world = world_from_rig[0] * rig_from_cam[c];
-                points.push(world.apply(&p_cam));
-                for k in 0..n_rigs {
-                    observations.push(Obs {
-                        rig: k,
-                        cam: c,
-                        point: PointRef::Free(points.len() - 1),
-                        uv: Vec2::zeros(),
-                    });
-                }
-            }
-        }
         let world_from_body = vec![Pose::from_rotvec(
             Vec3::new(0.2, 0.1, 0.0),
             Vec3::new(0.0, 0.0, 2.5),
         )];
+        let mut body_observations = Vec::new();
         for i in 0..4 {
             for k in 0..n_rigs {
-                observations.push(Obs {
+                body_observations.push(Obs {
                     rig: k,
                     cam: 0,
                     point: PointRef::Body {
@@ -1960,10 +1970,10 @@ mod tests {
             cam_fixed: vec![true, false],
             world_from_rig,
             rig_fixed: (0..n_rigs).map(|k| k == 0).collect(),
-            points,
+            points: vec![],
             world_from_body,
             body_fixed: vec![false],
-            observations,
+            observations: vec![],
             distances: vec![DistanceConstraint {
                 a: PointRef::Free(0),
                 b: PointRef::Free(3),
@@ -1973,11 +1983,19 @@ mod tests {
             priors: vec![],
             pixel_sigma: 1.0,
         };
-        // Make the observations exact.
-        for i in 0..p.observations.len() {
-            let r = p.residual(&p.observations[i]).unwrap();
-            p.observations[i].uv += r;
+        for c in 0..2 {
+            let world_from_cam = p.world_from_rig[0] * p.rig_from_cam[c];
+            for i in 0..8 {
+                let p_cam = Vec3::new(
+                    -0.4 + 0.11 * i as f64,
+                    0.3 * ((i % 3) as f64 - 1.0),
+                    2.0 + 0.1 * (i % 4) as f64,
+                );
+                p.add_point_seen_from_every_rig(world_from_cam.apply(&p_cam), c);
+            }
         }
+        p.observations.extend(body_observations);
+        assert_eq!(p.observe_exactly(), 0, "every point in front of its camera");
         p.distances[0].distance = (p.points[0] - p.points[3]).norm();
         p
     }
