@@ -61,6 +61,9 @@ pub struct RigBaOutput {
     /// The planar heights held at the initialisation (unit vectors over the free cameras
     /// of `information`).
     pub held_directions: Vec<DVector<f64>>,
+    /// The directions the solution left undetermined that were slid back to their held
+    /// value ([`crate::undetermined`]; same space).
+    pub recentred_directions: Vec<DVector<f64>>,
 }
 
 /// 1-σ (m or rad) of the priors holding undeterminable directions at the initial value:
@@ -292,7 +295,8 @@ pub fn refine(
         added = moved;
     }
     problem.priors = priors;
-    problem.priors.extend(added);
+    let (recentred_directions, added_priors): (Vec<_>, Vec<_>) = added.into_iter().unzip();
+    problem.priors.extend(added_priors);
     RigBaOutput {
         problem,
         keys: inlier_keys,
@@ -302,5 +306,6 @@ pub fn refine(
         information,
         rig_frames,
         held_directions,
+        recentred_directions,
     }
 }

@@ -35,7 +35,8 @@ const MAX_CHI2_RISE: f64 = 9.0;
 /// rest with the slid direction held (the rig's turns are planar only to the noise, so
 /// the scenes' shifts are exact only to it). A direction that is not such a slide, or
 /// whose slide raises the cost by more than noise `sigma_px` explains, is left alone.
-/// `problem` must hold no priors. Returns the priors that now hold the moved directions.
+/// `problem` must hold no priors. Returns the moved directions, each with the prior that
+/// now holds it.
 pub fn recentre(
     problem: &mut BundleProblem,
     cams: &[usize],
@@ -43,8 +44,8 @@ pub fn recentre(
     held: impl Fn(usize, &Vector3<f64>) -> f64,
     sigma_px: f64,
     settle: impl Fn(&mut BundleProblem),
-) -> Vec<DirectionPrior> {
-    let mut priors = Vec::new();
+) -> Vec<(DVector<f64>, DirectionPrior)> {
+    let mut moved = Vec::new();
     for v in null {
         let Some((members, u)) = slide(v, cams.len()) else {
             continue;
@@ -78,10 +79,10 @@ pub fn recentre(
         let (before, after) = (problem.cost(&Loss::Squared), candidate.cost(&Loss::Squared));
         if after.is_finite() && 2.0 * (after - before) <= MAX_CHI2_RISE * sigma_px * sigma_px {
             *problem = candidate;
-            priors.extend(prior);
+            moved.extend(prior.map(|p| (v.clone(), p)));
         }
     }
-    priors
+    moved
 }
 
 /// The members (indices into the free cameras) of the group `v` slides and the unit

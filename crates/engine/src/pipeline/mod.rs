@@ -596,6 +596,14 @@ pub fn calibrate_with(
                     ids[session.reference]
                 )
             };
+            // A slide the adjustment left wherever its steps ended, set back to the
+            // value the held heights take: say so, it is a convention, not a measurement.
+            let recentred = ba.recentred_directions.iter().any(|r| r.dot(v).abs() > 0.9);
+            let description = if recentred {
+                format!("{description}; it is set to the prior or 0, as the held heights are")
+            } else {
+                description
+            };
             unobservable_directions.push(UnobservableDirection {
                 components,
                 sigma: *s,
