@@ -38,6 +38,20 @@ pub fn null_directions(info: &DMatrix<f64>, decision_sigma: f64) -> Vec<DVector<
         .collect()
 }
 
+/// [`null_directions`] made orthogonal to the directions already `held` (unit vectors
+/// in the same space), those left with under half their length dropped.
+pub fn null_directions_besides(
+    info: &DMatrix<f64>,
+    decision_sigma: f64,
+    held: &[DVector<f64>],
+) -> Vec<DVector<f64>> {
+    let null = null_directions(info, decision_sigma);
+    orthogonalised(held, null.into_iter().map(|v| (v, ())))
+        .into_iter()
+        .map(|(v, _)| v)
+        .collect()
+}
+
 /// Directions that planar motion leaves undetermined whatever the noise. The rig turns
 /// only about the plane normal `n`, so a camera moved along `n` (rig frame) sees its
 /// scene displaced by the same world vector at every pose, which displacing that scene

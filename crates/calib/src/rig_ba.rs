@@ -83,12 +83,11 @@ fn hold_priors(
         return (vec![], vec![]);
     };
     let held = heights(&cams);
-    let numerical = crate::diagnostics::null_directions(&info, decision_sigma_px);
-    let others = crate::diagnostics::orthogonalised(&held, numerical.into_iter().map(|v| (v, ())));
+    let others = crate::diagnostics::null_directions_besides(&info, decision_sigma_px, &held);
     let priors = held
         .iter()
         .cloned()
-        .chain(others.into_iter().map(|(v, _)| v))
+        .chain(others)
         .map(|v| {
             let terms: Vec<(usize, nalgebra::Vector6<f64>)> = cams
                 .iter()
@@ -266,36 +265,32 @@ pub fn refine(
     // Report observability from the data alone: the holding priors are taken out.
     let priors = std::mem::take(&mut problem.priors);
     let mut information = problem.extrinsic_information(&Loss::Squared);
-    let mut added = Vec::new();
     // What nothing held from the start and the data leave undetermined goes back to
     // its held value, as the held heights are (0, or the session's height prior).
-    if let Some((cams, info)) = &information {
-        let null = crate::diagnostics::null_directions(info, decision_sigma);
-        let null: Vec<DVector<f64>> =
-            crate::diagnostics::orthogonalised(&held_directions, null.into_iter().map(|v| (v, ())))
-                .into_iter()
-                .map(|(v, _)| v)
-                .collect();
-        let axis = nalgebra::Vector3::from(init.motion.axis).normalize();
-        let held = |c: usize, u: &nalgebra::Vector3<f64>| {
-            let along = axis.dot(u);
-            match session.height_priors[c] {
-                Some(h) if along.abs() > 0.99 => h * along,
-                _ => 0.0,
-            }
-        };
-        let settle = |p: &mut BundleProblem| {
-            p.solve(&lm(Loss::Squared));
-        };
-        let moved =
-            crate::undetermined::recentre(&mut problem, cams, &null, held, sigma_px, settle);
-        if !moved.is_empty() {
-            information = problem.extrinsic_information(&Loss::Squared);
+    let moved = match &information {
+        Some((cams, info)) => {
+            let null =
+                crate::diagnostics::null_directions_besides(info, decision_sigma, &held_directions);
+            let axis = nalgebra::Vector3::from(init.motion.axis).normalize();
+            let held = |c: usize, u: &nalgebra::Vector3<f64>| {
+                let along = axis.dot(u);
+                match session.height_priors[c] {
+                    Some(h) if along.abs() > 0.99 => h * along,
+                    _ => 0.0,
+                }
+            };
+            let settle = |p: &mut BundleProblem| {
+                p.solve(&lm(Loss::Squared));
+            };
+            crate::undetermined::recentre(&mut problem, cams, &null, held, sigma_px, settle)
         }
-        added = moved;
+        None => vec![],
+    };
+    if !moved.is_empty() {
+        information = problem.extrinsic_information(&Loss::Squared);
     }
+    let (recentred_directions, added_priors): (Vec<_>, Vec<_>) = moved.into_iter().unzip();
     problem.priors = priors;
-    let (recentred_directions, added_priors): (Vec<_>, Vec<_>) = added.into_iter().unzip();
     problem.priors.extend(added_priors);
     RigBaOutput {
         problem,
