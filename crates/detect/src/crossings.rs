@@ -44,6 +44,13 @@ const BLOCK: usize = 32;
 /// Unexplained junctions that make a block a possible board: the smallest boards the
 /// grown searches seed (12 px tags) put several in every block they cover.
 const MIN_JUNCTIONS: usize = 4;
+/// Active blocks a group needs to be searched. Fewer hold at most a few of the smallest
+/// legible tags (12 px, 15.6 px apart with Kalibr's spacing: three in a row already
+/// reach across two blocks, 3×3 of them across two by two), while a board in view
+/// covers blocks by the dozen. Textured scenes make lone blocks and pairs, each a
+/// 128-px crop searched for nothing: 7-9 % of `accurate`'s instructions on the hall
+/// presets, for the same tags found.
+const MIN_BLOCKS: usize = 3;
 /// Margin (px) of a crop round its blocks: a tag must lie whole in a crop to be found,
 /// and a board's junctions may sit in one corner of a block.
 const MARGIN: usize = 48;
@@ -96,7 +103,7 @@ fn junction_range(segmentation_floor: u8) -> i16 {
 /// Crops of the `w × h` image `px` where a board without a found tag may lie: blocks
 /// with at least [`MIN_JUNCTIONS`] X-junctions (of the range [`junction_range`] gives
 /// for the segmentation's contrast floor) outside the `found` tags' surroundings,
-/// joined where they touch, widened by [`MARGIN`] and merged where they overlap. Empty
+/// joined where they touch into groups of at least [`MIN_BLOCKS`], widened by [`MARGIN`] and merged where they overlap. Empty
 /// when there are none; the whole image when the crops would cover most of it.
 pub fn board_crops(
     px: &[u8],
@@ -166,7 +173,7 @@ fn explained_mask(w: usize, h: usize, found: &[[Vec2; 4]]) -> Vec<bool> {
 }
 
 /// The bounding boxes (px, widened by [`MARGIN`], clipped to the image) of the
-/// 8-connected groups of active blocks.
+/// 8-connected groups of at least [`MIN_BLOCKS`] active blocks.
 fn join_blocks(active: &[bool], bw: usize, bh: usize, w: usize, h: usize) -> Vec<Rect> {
     let mut seen = vec![false; active.len()];
     let mut crops = Vec::new();
@@ -177,7 +184,9 @@ fn join_blocks(active: &[bool], bw: usize, bh: usize, w: usize, h: usize) -> Vec
         seen[start] = true;
         let mut stack = vec![start];
         let (mut bx0, mut by0, mut bx1, mut by1) = (bw, bh, 0, 0);
+        let mut blocks = 0;
         while let Some(i) = stack.pop() {
+            blocks += 1;
             let (bx, by) = (i % bw, i / bw);
             (bx0, by0, bx1, by1) = (bx0.min(bx), by0.min(by), bx1.max(bx), by1.max(by));
             for ny in by.saturating_sub(1)..(by + 2).min(bh) {
@@ -189,6 +198,9 @@ fn join_blocks(active: &[bool], bw: usize, bh: usize, w: usize, h: usize) -> Vec
                     }
                 }
             }
+        }
+        if blocks < MIN_BLOCKS {
+            continue;
         }
         crops.push(Rect {
             x0: (bx0 * BLOCK).saturating_sub(MARGIN),
@@ -341,6 +353,53 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// A lone patch of X-junctions (a checkered tile, a logo) makes no crop; a field of
+    /// them as wide as a board does.
+    #[test]
+    fn lone_junctions_make_no_crop() {
+        let (w, h) = (640, 480);
+        // A checker of `n × n` squares of 6 px turned by 30°, its corner at (x0, y0),
+        // each pixel the mean of 4 × 4 samples (the junctions of a sharp checker on
+        // the pixel grid are not saddles at 2 px, as they are in any camera's image).
+        let checker = |px: &mut [u8], x0: usize, y0: usize, n: usize| {
+            let (c, s) = (30f64.to_radians().cos(), 30f64.to_radians().sin());
+            let side = 6.0 * n as f64;
+            for y in y0.saturating_sub(8)..y0 + 6 * n + 8 {
+                for x in x0.saturating_sub(8)..x0 + 6 * n + 8 {
+                    let (mut sum, mut inside) = (0.0, 0);
+                    for k in 0..16 {
+                        let dx = x as f64 - x0 as f64 + (k % 4) as f64 / 4.0 - 0.375;
+                        let dy = y as f64 - y0 as f64 + (k / 4) as f64 / 4.0 - 0.375;
+                        let (u, v) = (c * dx + s * dy, -s * dx + c * dy);
+                        if (0.0..side).contains(&u) && (0.0..side).contains(&v) {
+                            let dark = ((u / 6.0) as usize + (v / 6.0) as usize) % 2 == 0;
+                            sum += if dark { 40.0 } else { 220.0 };
+                            inside += 1;
+                        }
+                    }
+                    if inside == 16 {
+                        px[y * w + x] = (sum / 16.0) as u8;
+                    }
+                }
+            }
+        };
+        let mut lone = vec![128u8; w * h];
+        // 4 × 4 squares: 9 junctions, in one or two 32-px blocks.
+        for (x0, y0) in [(40, 40), (300, 200), (500, 390)] {
+            checker(&mut lone, x0, y0, 4);
+        }
+        assert!(board_crops(&lone, w, h, 10, &[]).is_empty());
+        let mut field = lone.clone();
+        checker(&mut field, 200, 64, 16);
+        let crops = board_crops(&field, w, h, 10, &[]);
+        assert_eq!(crops.len(), 1, "{crops:?}");
+        let r = crops[0];
+        assert!(
+            r.x0 <= 200 && r.y0 <= 64 && r.x1 >= 296 && r.y1 >= 160,
+            "{r:?}"
+        );
     }
 
     /// Sensor noise alone, faint or strong, makes no crop.
