@@ -374,7 +374,7 @@ mod tests {
                         let dy = y as f64 - y0 as f64 + (k / 4) as f64 / 4.0 - 0.375;
                         let (u, v) = (c * dx + s * dy, -s * dx + c * dy);
                         if (0.0..side).contains(&u) && (0.0..side).contains(&v) {
-                            let dark = ((u / 6.0) as usize + (v / 6.0) as usize) % 2 == 0;
+                            let dark = ((u / 6.0) as usize + (v / 6.0) as usize).is_multiple_of(2);
                             sum += if dark { 40.0 } else { 220.0 };
                             inside += 1;
                         }
