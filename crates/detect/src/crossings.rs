@@ -103,8 +103,9 @@ fn junction_range(segmentation_floor: u8) -> i16 {
 /// Crops of the `w × h` image `px` where a board without a found tag may lie: blocks
 /// with at least [`MIN_JUNCTIONS`] X-junctions (of the range [`junction_range`] gives
 /// for the segmentation's contrast floor) outside the `found` tags' surroundings,
-/// joined where they touch into groups of at least [`MIN_BLOCKS`], widened by [`MARGIN`] and merged where they overlap. Empty
-/// when there are none; the whole image when the crops would cover most of it.
+/// joined where they touch into groups of at least [`MIN_BLOCKS`], widened by
+/// [`MARGIN`] and merged where they overlap. Empty when there are none; the whole image
+/// when the crops would cover most of it.
 pub fn board_crops(
     px: &[u8],
     w: usize,
