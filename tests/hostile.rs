@@ -424,3 +424,48 @@ async fn detection_decodes_what_the_upload_accepted() {
     );
     assert!(doc.contains("images_skipped\":0"), "{doc}");
 }
+
+/// Images too small to hold a tag (a 1×1 or 2×2 camera is a valid camera) are detected
+/// with no tags: the AprilTag C library read out of bounds on them, and as the upload
+/// detects each image in the server's own process, one such upload took the server down.
+#[tokio::test]
+async fn images_too_small_for_a_tag_fail_the_job_not_the_server() {
+    let dir = tempfile::tempdir().unwrap();
+    let key = api_key(dir.path(), "acme");
+    let s = Server::start(dir.path(), &["--workers", "1"]);
+    let c = client(&key);
+    for (w, h) in [(1u32, 1u32), (2, 2), (16, 4)] {
+        let sess = create_session(&c, &s, &image_session(2, w, h)).await;
+        let sid = sess["id"].as_str().unwrap().to_string();
+        let img = image::GrayImage::from_fn(w, h, |x, y| image::Luma([((x + y) * 90 % 256) as u8]));
+        let mut png = Vec::new();
+        image::DynamicImage::ImageLuma8(img)
+            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
+            .unwrap();
+        for cam in ["front", "rear"] {
+            for k in 0..2 {
+                let r = c
+                    .put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/{k}")))
+                    .header("content-type", "image/png")
+                    .body(png.clone())
+                    .send()
+                    .await
+                    .unwrap();
+                assert_eq!(r.status().as_u16(), 200, "{}", r.text().await.unwrap());
+            }
+        }
+        let done = run_job(&c, &s, &sid, std::time::Duration::from_secs(60)).await;
+        assert_eq!(done["status"], "failed", "{w}×{h}: {done}");
+        let id = done["id"].as_str().unwrap();
+        let result = get_json(&c, &s, &format!("/v1/jobs/{id}/result")).await;
+        // Detected on upload, in the server's process, and found empty.
+        assert_eq!(result["detection"]["images_reused"], 4, "{w}×{h}: {result}");
+        assert_eq!(result["detection"]["points_total"], 0, "{w}×{h}: {result}");
+        assert_eq!(
+            result["reasons"][0]["code"], "camera_not_observed",
+            "{w}×{h}: {result}"
+        );
+        let health = c.get(s.url("/healthz")).send().await.unwrap();
+        assert_eq!(health.status().as_u16(), 200, "after {w}×{h}");
+    }
+}

@@ -195,8 +195,14 @@ fn detect_with(
     h: usize,
     opts: &QuadOptions,
 ) -> Result<Vec<Candidate>, String> {
+    let decimate = opts.decimate.max(1.0);
+    let upscale = if opts.upsample { 2 } else { 1 };
+    let (sw, sh) = segmented_size(upscale * w, upscale * h, decimate);
+    if sw.min(sh) < MIN_SEGMENTED_SIDE {
+        return Ok(Vec::new());
+    }
     det.set_thread_number(1);
-    det.set_decimation(opts.decimate.max(1.0));
+    det.set_decimation(decimate);
     det.set_refine_edges(true);
     // The C detector's input: the pixels, upsampled and/or grown as asked.
     let upsampled;
@@ -240,6 +246,24 @@ fn detect_with(
             }
         })
         .collect())
+}
+
+/// Fewest pixels across the image the C segmentation is given (after its decimation):
+/// a tag36h11's black square is 8 cells, so a narrower image holds no tag; and the C
+/// library reads out of bounds (or divides by zero) on images under 3 pixels across,
+/// which a 2×2 upload or a thin crop would otherwise reach.
+const MIN_SEGMENTED_SIDE: usize = 8;
+
+/// The size of the image the C library segments for a `w × h` input at `decimate`
+/// (`image_u8_decimate`: 3 → 2 block averages at 1.5, otherwise every
+/// `⌊decimate⌋`-th pixel).
+fn segmented_size(w: usize, h: usize, decimate: f32) -> (usize, usize) {
+    if decimate == 1.5 {
+        (w / 3 * 2, h / 3 * 2)
+    } else {
+        let f = (decimate as usize).max(1);
+        (1 + w.saturating_sub(1) / f, 1 + h.saturating_sub(1) / f)
+    }
 }
 
 /// The image upsampled 2× by bilinear interpolation, pixel centres kept: upsampled pixel
@@ -308,6 +332,41 @@ fn grow_row(px: &[u8], w: usize, h: usize, y: usize, out: &mut [u8]) {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn images_too_small_for_a_tag_have_no_candidates() {
+        // The C library crashed on these (1×1 to 16×4 at decimation 2, anything under
+        // 6 rows at 1.5, 2 px wide at 1.5 by zero division): every size up to 20×20,
+        // every pass rigcal runs, returns, and a tag needs at least 8 segmented pixels.
+        for (decimate, upsample, grow_bright) in [
+            (1.0, false, false),
+            (1.5, true, true),
+            (1.5, false, false),
+            (2.0, false, false),
+            (2.0, false, true),
+            (3.0, false, false),
+            (4.0, true, false),
+        ] {
+            let o = QuadOptions {
+                decimate,
+                upsample,
+                grow_bright,
+                min_contrast: Some(5),
+                ..QuadOptions::default()
+            };
+            for w in 1..=20 {
+                for h in 1..=20 {
+                    let px: Vec<u8> = (0..w * h).map(|i| (i * 37 % 256) as u8).collect();
+                    let found = detect_pixels(&px, w, h, &o).expect("a detection");
+                    assert!(found.is_empty(), "{w}×{h} at {decimate}: {found:?}");
+                }
+            }
+        }
+        assert_eq!(segmented_size(1920, 1080, 2.0), (960, 540));
+        assert_eq!(segmented_size(1921, 1081, 2.0), (961, 541));
+        assert_eq!(segmented_size(10, 5, 1.5), (6, 2));
+        assert_eq!(segmented_size(10, 5, 1.0), (10, 5));
+    }
 
     #[test]
     fn upsampling_keeps_levels_and_pixel_centres() {
