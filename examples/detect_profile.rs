@@ -5,7 +5,8 @@
 //! ms per image (the fastest of `REPEAT` runs each, default 1), the share of legible tags
 //! found and the corner RMS; `edge-only` turns the whole-tag fits off, `decimated` the
 //! full-resolution searches, `fast` both (`Quality::Fast`, its whole-tag fits below 30
-//! px); `FIT_BELOW=px` and `SPACING=px` (between edge profiles) override those options.
+//! px); `FIT_BELOW=px`, `SPACING=px` (between edge profiles) and `DECIMATE=f` (of the
+//! first quad search) override those options.
 use rigcal_detect::gray::Gray;
 use rigcal_detect::{detect_tags, DetectOptions};
 use std::collections::BTreeMap;
@@ -44,6 +45,9 @@ fn main() {
     }
     if let Some(px) = std::env::var("SPACING").ok().and_then(|v| v.parse().ok()) {
         opts.profile_spacing = px;
+    }
+    if let Some(d) = std::env::var("DECIMATE").ok().and_then(|v| v.parse().ok()) {
+        opts.quads.decimate = d;
     }
     let repeat: usize = std::env::var("REPEAT")
         .ok()

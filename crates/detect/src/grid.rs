@@ -129,6 +129,36 @@ pub fn inconsistent(
     out
 }
 
+/// Where the tags of `layout` not among `found` (its found tags' corners, by id) should
+/// be, from their nearest found neighbours: the extent of a board in view, before its
+/// missing tags are measured. Predictions whose size is not within a factor 2 of the
+/// found tags' are left out (a far extrapolation from a lone seed).
+pub fn predicted_rest(
+    layout: &GridLayout,
+    found: &BTreeMap<u32, [Vec2; 4]>,
+    lens: Lens,
+    img: &Gray,
+) -> Vec<[Vec2; 4]> {
+    let plane: BTreeMap<u32, [Vec2; 4]> = found
+        .iter()
+        .filter_map(|(id, c)| Some((*id, lens.quad_to_plane(c)?)))
+        .collect();
+    let size = |c: &[Vec2; 4]| (c[2] - c[0]).norm().max((c[3] - c[1]).norm());
+    let Some(seed_size) = found.values().map(size).max_by(f64::total_cmp) else {
+        return Vec::new();
+    };
+    layout
+        .ids()
+        .filter(|id| !found.contains_key(id))
+        .filter_map(|id| {
+            let (r, c) = layout.cell_of(id)?;
+            let h = local_homography(layout, &plane, r, c, None)?;
+            predict(layout, &h, id, lens, img)
+        })
+        .filter(|c| (0.5 * seed_size..=2.0 * seed_size).contains(&size(c)))
+        .collect()
+}
+
 /// Complete and check one board. `seeds` are the refined quad-detector tags whose ids
 /// belong to the board (at most one per id); predicted tags are measured and read as
 /// `opts` says (its profile spacing and bit errors).
@@ -247,4 +277,60 @@ pub fn complete(
         }
     }
     found
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_rest_of_a_seeded_board_is_predicted_where_it_lies() {
+        // A 6 × 6 board seen in perspective (a homography board → pixels), three seeds
+        // in one corner: every other tag inside the image is predicted exactly, the
+        // ones across the image border are left out, the seeds are not repeated.
+        let layout = GridLayout {
+            rows: 6,
+            cols: 6,
+            tag_size: 0.088,
+            spacing: 0.3,
+            first_id: 0,
+        };
+        let h = Mat3::new(500.0, 60.0, 40.0, -40.0, 540.0, 30.0, 0.3, 0.5, 1.0);
+        let to_px = |id: u32| {
+            [0, 1, 2, 3].map(|k| {
+                let b = layout.corner(id, k).unwrap();
+                let p = h * Vec3::new(b.x, b.y, 1.0);
+                Vec2::new(p.x / p.z, p.y / p.z)
+            })
+        };
+        let img = Gray {
+            width: 240,
+            height: 220,
+            data: vec![0.0; 240 * 220],
+        };
+        let inside = |c: &[Vec2; 4]| {
+            c.iter()
+                .all(|p| p.x > 2.0 && p.y > 2.0 && p.x < 237.0 && p.y < 217.0)
+        };
+        let seeds: BTreeMap<u32, [Vec2; 4]> = [0, 1, 6].map(|id| (id, to_px(id))).into();
+        let rest = predicted_rest(&layout, &seeds, Lens(None), &img);
+        let expected: Vec<[Vec2; 4]> = layout
+            .ids()
+            .filter(|id| !seeds.contains_key(id))
+            .map(to_px)
+            .filter(inside)
+            .collect();
+        assert!(
+            expected.len() > 10 && expected.len() < 33,
+            "{}",
+            expected.len()
+        );
+        assert_eq!(rest.len(), expected.len());
+        for (p, e) in rest.iter().zip(&expected) {
+            for k in 0..4 {
+                assert!((p[k] - e[k]).norm() < 1e-6, "{p:?} {e:?}");
+            }
+        }
+        assert!(predicted_rest(&layout, &BTreeMap::new(), Lens(None), &img).is_empty());
+    }
 }

@@ -230,7 +230,19 @@ pub fn detect_tags(
         // Those searches segment only the crops where an unseeded board may lie (the
         // image's X-junctions that no found tag explains): the whole image costs as much
         // as the first search, and the board is usually out of view.
-        let found_quads: Vec<[Vec2; 4]> = refined.values().map(|f| f.refined.corners).collect();
+        // The boards in view explain their own junctions, found tags or not (`fast`'s
+        // first search finds a few tags of each board, the layout the rest later): on
+        // the dense hall half the crops were the unfound parts of seeded boards.
+        let mut found_quads: Vec<[Vec2; 4]> = refined.values().map(|f| f.refined.corners).collect();
+        for w in &wanted {
+            if let Wanted::Grid(_, layout) = w {
+                let seeds: BTreeMap<u32, [Vec2; 4]> = layout
+                    .ids()
+                    .filter_map(|id| Some((id, refined.get(&id)?.refined.corners)))
+                    .collect();
+                found_quads.extend(grid::predicted_rest(layout, &seeds, lens, img));
+            }
+        }
         let floor = base.min_contrast.unwrap_or(quads::MIN_CONTRAST_RANGE.0);
         let crops = crossings::board_crops(&px, w, h, floor, &found_quads);
         let search = |o: &quads::QuadOptions| -> Result<Vec<quads::Candidate>, String> {
