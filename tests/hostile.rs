@@ -437,17 +437,13 @@ async fn images_too_small_for_a_tag_fail_the_job_not_the_server() {
     for (w, h) in [(1u32, 1u32), (2, 2), (16, 4)] {
         let sess = create_session(&c, &s, &image_session(2, w, h)).await;
         let sid = sess["id"].as_str().unwrap().to_string();
-        let img = image::GrayImage::from_fn(w, h, |x, y| image::Luma([((x + y) * 90 % 256) as u8]));
-        let mut png = Vec::new();
-        image::DynamicImage::ImageLuma8(img)
-            .write_to(&mut std::io::Cursor::new(&mut png), image::ImageFormat::Png)
-            .unwrap();
+        let bytes = png(w, h, 0);
         for cam in ["front", "rear"] {
             for k in 0..2 {
                 let r = c
                     .put(s.url(&format!("/v1/sessions/{sid}/images/{cam}/{k}")))
                     .header("content-type", "image/png")
-                    .body(png.clone())
+                    .body(bytes.clone())
                     .send()
                     .await
                     .unwrap();
