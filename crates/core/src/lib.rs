@@ -8,6 +8,7 @@ pub mod linalg;
 pub mod par;
 pub mod result;
 pub mod session;
+pub mod simd;
 pub mod target;
 pub mod vehicle;
 pub mod verdict;

@@ -60,6 +60,7 @@ const MAX_CROP_SHARE: f64 = 0.5;
 /// AprilGrid's crossing squares sit in the spacing, 0.3 of a tag in Kalibr's default).
 const EXPLAINED_REACH: f64 = 0.5;
 
+rigcal_core::avx2_or_portable! {
 /// Marks in `hits` (one per pixel of the row, `w − 4` long, for columns `2..w − 2`)
 /// the X-junctions of row `r[2]` (rows `r[0..5]` are `y − 2 ..= y + 2`): on the ring
 /// of a pixel's 8 neighbours at 2 px (1.4 px on the diagonals), opposite samples agree
@@ -98,6 +99,7 @@ fn junction_row(r: [&[u8]; 5], min_range: i16, hits: &mut [bool]) {
             & (10 * odd <= 15 * range)
             & (5 * centre <= 8 * range);
     }
+}
 }
 
 /// The grey range an X-junction must reach: the segmentation's own noise-adaptive

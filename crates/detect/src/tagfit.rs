@@ -591,6 +591,7 @@ impl Kernel {
     }
 }
 
+rigcal_core::avx2_or_portable! {
 /// Horizontal pass: the field convolved along rows, at pixel columns, every sub-row
 /// (row-major: sub-row, then pixel column).
 ///
@@ -635,7 +636,9 @@ fn hpass(reg: &Region, field: &[Field], k: &Kernel, cols: &[(usize, usize)]) -> 
     }
     out
 }
+}
 
+rigcal_core::avx2_or_portable! {
 /// Vertical pass of a horizontal pass's output, at the compared pixels: each pixel row's
 /// span of compared columns at once, one scaled add per tap (as [`hpass`]).
 fn vpass(reg: &Region, hrows: &[Field], k: &Kernel) -> Vec<f64> {
@@ -660,6 +663,7 @@ fn vpass(reg: &Region, hrows: &[Field], k: &Kernel) -> Vec<f64> {
         }
     }
     reg.pixels.iter().map(|px| out[px.idx] as f64).collect()
+}
 }
 
 /// Linear terms of the grey-level model at a pixel with fields `w` (white) and `o`
