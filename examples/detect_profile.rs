@@ -6,7 +6,8 @@
 //! found and the corner RMS; `edge-only` turns the whole-tag fits off, `decimated` the
 //! full-resolution searches, `fast` both (`Quality::Fast`, its whole-tag fits below 30
 //! px); `FIT_BELOW=px`, `SPACING=px` (between edge profiles) and `DECIMATE=f` (of the
-//! first quad search) override those options.
+//! first quad search) override those options. The digest it prints covers every
+//! reported point bit for bit; `POINTS=1` prints every point.
 use rigcal_detect::gray::Gray;
 use rigcal_detect::{detect_tags, DetectOptions};
 use std::collections::BTreeMap;
@@ -57,6 +58,7 @@ fn main() {
     let mut scale: BTreeMap<String, [f64; 2]> = BTreeMap::new();
     let mut outward: Vec<Vec<f64>> = vec![vec![]; SIZE_BINS.len() + 1];
     let (mut ms, mut legible, mut found, mut wrong, mut sq, mut n) = (vec![], 0, 0, 0, 0.0, 0);
+    let mut digest: u64 = 0xcbf2_9ce4_8422_2325;
     for t in truth.iter().filter(|t| t.frame < frames) {
         let camera = &s
             .cameras
@@ -75,6 +77,22 @@ fn main() {
         }
         let d = d.expect("one run");
         ms.push(best);
+        if std::env::var_os("POINTS").is_some() {
+            for p in &d.points {
+                println!("point {} {} {:.17e} {:.17e}", t.path, p.point, p.u, p.v);
+            }
+        }
+        // FNV-1a over every reported point's name and coordinates' bits.
+        for p in &d.points {
+            for b in p
+                .point
+                .bytes()
+                .chain(p.u.to_bits().to_le_bytes())
+                .chain(p.v.to_bits().to_le_bytes())
+            {
+                digest = (digest ^ u64::from(b)).wrapping_mul(0x100_0000_01b3);
+            }
+        }
         let got: BTreeMap<&str, [f64; 2]> = d
             .points
             .iter()
@@ -154,6 +172,8 @@ fn main() {
         100.0 * found as f64 / legible.max(1) as f64,
         (sq / n.max(1) as f64).sqrt()
     );
+    // Equal digests: the same points, bit for bit (a refactoring that claims so).
+    println!("  points digest {digest:016x}");
     // Outward bias: the mean offset of detected corners away from the tag's centre, by
     // tag size; a tag that reads systematically larger or smaller biases every distance.
     for (i, o) in outward.iter().enumerate() {

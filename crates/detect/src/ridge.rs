@@ -188,28 +188,15 @@ struct Smoothed {
     ryy: Vec<f32>,
 }
 
+rigcal_core::avx2_or_portable! {
+/// Three row passes (value, first, second derivative) and three column passes, one per
+/// row pass: each field is its row kernel along `x` times its column kernel along `y`.
+fn smoothed(img: &Gray, sigma: f32) -> Smoothed {
+    Smoothed::of_portable(img, sigma)
+}
+}
+
 impl Smoothed {
-    /// Three row passes (value, first, second derivative) and three column passes, one
-    /// per row pass: each field is its row kernel along `x` times its column kernel along
-    /// `y`.
-    fn of(img: &Gray, sigma: f32) -> Self {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2, checked just above.
-            return unsafe { Self::of_avx2(img, sigma) };
-        }
-        Self::of_portable(img, sigma)
-    }
-
-    /// [`Self::of_portable`] compiled for AVX2: the same operations in the same order
-    /// (no fused multiply-add), eight lanes at a time instead of four, so the fields are
-    /// bit for bit those of the portable build.
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn of_avx2(img: &Gray, sigma: f32) -> Self {
-        Self::of_portable(img, sigma)
-    }
-
     #[inline(always)]
     fn of_portable(img: &Gray, sigma: f32) -> Self {
         let (w, h) = (img.width, img.height);
@@ -243,7 +230,7 @@ fn points_at(img: &Gray, sigma: f32, min_strength: f32, best: &mut [f32]) -> Vec
         rxx,
         rxy,
         ryy,
-    } = Smoothed::of(img, sigma);
+    } = smoothed(img, sigma);
     let s2 = sigma * sigma;
     let margin = (2.0 * sigma).ceil() as usize + 1;
     let mut out = Vec::new();
@@ -729,7 +716,7 @@ mod tests {
                 }
                 acc
             };
-            let s = Smoothed::of(&img, sigma);
+            let s = smoothed(&img, sigma);
             let fields: [(&[f32], &[f32], &Vec<f32>); 6] = [
                 (&g, &g, &s.r),
                 (&d1, &g, &s.rx),

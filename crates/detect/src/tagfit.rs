@@ -617,12 +617,14 @@ fn hpass(reg: &Region, field: &[Field], k: &Kernel, cols: &[(usize, usize)]) -> 
         let len = n + per_phase;
         phase.clear();
         phase.resize(sub * len, 0.0);
-        for p in 0..sub {
-            for (i, x) in phase[p * len..(p + 1) * len].iter_mut().enumerate() {
-                let c = base + i as i64;
-                if (0..w as i64).contains(&c) {
-                    *x = row[c as usize * sub + p];
-                }
+        // Columns `base + i` within the row: `i` in `i0..i1` (zero outside).
+        let i0 = (-base).clamp(0, len as i64) as usize;
+        let i1 = (w as i64 - base).clamp(i0 as i64, len as i64) as usize;
+        for p in (0..sub).filter(|_| i0 < i1) {
+            let first = (base + i0 as i64) as usize * sub + p;
+            let dst = &mut phase[p * len + i0..p * len + i1];
+            for (x, v) in dst.iter_mut().zip(row[first..].iter().step_by(sub)) {
+                *x = *v;
             }
         }
         let dst = &mut out[rr * w + lo..rr * w + hi];

@@ -417,6 +417,21 @@ const COST_CHUNK: usize = 4096;
 /// block positions `a ≤ b` (rig 0, camera 1, point 2).
 const PAIR_INDEX: [[usize; 4]; 4] = [[0, 1, 2, 6], [6, 3, 4, 6], [6, 6, 5, 6], [6; 4]];
 
+rigcal_core::avx2_or_portable! {
+/// Accumulate the observations `obs` (indices) of `problem` into `sink`; their cost, or
+/// `None` when a point is behind its camera. The hot loop of the normal equations:
+/// compiled for AVX2 too ([`rigcal_core::simd`]), the blocks' products twice as wide.
+fn observation_normal(
+    problem: &BundleProblem,
+    layout: &Layout,
+    loss: &Loss,
+    obs: &[usize],
+    sink: &mut Sink,
+) -> Option<f64> {
+    problem.observation_normal_portable(layout, loss, obs, sink)
+}
+}
+
 impl BundleProblem {
     fn point_world(&self, p: &PointRef) -> Vec3 {
         match *p {
@@ -749,40 +764,6 @@ impl BundleProblem {
         0.5 * c
     }
 
-    /// Accumulate the observations `obs` (indices) into `sink`; their cost, or `None`
-    /// when a point is behind its camera.
-    ///
-    /// The hot loop of the normal equations, compiled a second time for AVX2 and chosen
-    /// at run time: the release build targets baseline x86-64 (SSE2), and the blocks'
-    /// products run twice as wide with AVX2. Without FMA the arithmetic, and so the
-    /// result, is the same on either path.
-    fn observation_normal(
-        &self,
-        layout: &Layout,
-        loss: &Loss,
-        obs: &[usize],
-        sink: &mut Sink,
-    ) -> Option<f64> {
-        #[cfg(target_arch = "x86_64")]
-        if std::arch::is_x86_feature_detected!("avx2") {
-            // SAFETY: the CPU has AVX2 (checked just above).
-            return unsafe { self.observation_normal_avx2(layout, loss, obs, sink) };
-        }
-        self.observation_normal_portable(layout, loss, obs, sink)
-    }
-
-    #[cfg(target_arch = "x86_64")]
-    #[target_feature(enable = "avx2")]
-    unsafe fn observation_normal_avx2(
-        &self,
-        layout: &Layout,
-        loss: &Loss,
-        obs: &[usize],
-        sink: &mut Sink,
-    ) -> Option<f64> {
-        self.observation_normal_portable(layout, loss, obs, sink)
-    }
-
     #[inline(always)]
     fn observation_normal_portable(
         &self,
@@ -932,7 +913,7 @@ impl BundleProblem {
                     first_elim,
                 };
                 let obs = &layout.elim_order[range];
-                let cost = self.observation_normal(layout, loss, obs, &mut sink)?;
+                let cost = observation_normal(self, layout, loss, obs, &mut sink)?;
                 Some((pair, gr, cost))
             })
             .collect();
