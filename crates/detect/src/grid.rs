@@ -10,7 +10,7 @@ use super::gray::Gray;
 use super::refine::{refine_quad, Lens, Refined};
 use super::verify::read_tag;
 use super::DetectOptions;
-use rigcal_core::geometry::homography::homography;
+use rigcal_core::geometry::homography::homography_of_general_position as homography;
 use rigcal_core::geometry::{Mat3, Vec2, Vec3};
 use rigcal_core::target::board::GridLayout;
 use std::collections::BTreeMap;

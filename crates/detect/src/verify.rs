@@ -3,7 +3,7 @@
 
 use super::gray::Gray;
 use super::refine::Lens;
-use rigcal_core::geometry::homography::homography;
+use rigcal_core::geometry::homography::homography_of_general_position as homography;
 use rigcal_core::geometry::{Mat3, Vec2, Vec3};
 use rigcal_core::target::tag36h11::{BIT_CELLS, CODES, WIDTH_AT_BORDER};
 

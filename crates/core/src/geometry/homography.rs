@@ -2,11 +2,23 @@
 //! verifier and the grid completion share.
 
 use super::{Mat3, Vec2};
-use crate::linalg::null_vector;
-use nalgebra::DMatrix;
+use crate::linalg::{null_vector, null_vector_of_general_position};
+use nalgebra::{DMatrix, DVector};
 
 /// Hartley-normalised DLT homography `x ~ H a`.
 pub fn homography(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
+    dlt(a, x, null_vector)
+}
+
+/// [`homography`] for points in general position by construction (a tag's corners, a
+/// board's), its null vector by inverse iteration
+/// ([`null_vector_of_general_position`]): ~20× cheaper, for the detector, which fits
+/// hundreds per image.
+pub fn homography_of_general_position(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
+    dlt(a, x, null_vector_of_general_position)
+}
+
+fn dlt(a: &[Vec2], x: &[Vec2], null: fn(&DMatrix<f64>) -> Option<DVector<f64>>) -> Option<Mat3> {
     let (ta, na) = normalizer(a);
     let (tx, nx) = normalizer(x);
     let mut m = DMatrix::zeros(2 * a.len(), 9);
@@ -19,7 +31,7 @@ pub fn homography(a: &[Vec2], x: &[Vec2]) -> Option<Mat3> {
             m[(2 * i + 1, k)] = row2[k];
         }
     }
-    let v = null_vector(&m)?;
+    let v = null(&m)?;
     let hn = Mat3::from_row_slice(v.as_slice());
     Some(tx.try_inverse()? * hn * ta)
 }
