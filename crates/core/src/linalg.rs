@@ -127,9 +127,9 @@ pub fn null_vector(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
 /// ~0.08) it does not converge and the decomposition answers; where they are equal to
 /// working precision it stops at once on some vector of their space. Not for the
 /// estimators: with it, vectors within 10⁻⁹ of the decomposition's moved the
-/// single-axis preset's extrinsic by 0.4 mm (a seventieth of its σ) and Lébraly 5.1's
-/// initial translation by 0.1 mm (`tests/golden.rs`), their problems being that
-/// ill-conditioned.
+/// single-axis preset's extrinsic by up to 1.1 mm and 0.015° along the directions its
+/// result reports unobservable, and Lébraly 5.1's initial translation by 0.1 mm
+/// (`tests/golden.rs`), their problems being that ill-conditioned.
 pub fn null_vector_of_general_position(m: &DMatrix<f64>) -> Option<nalgebra::DVector<f64>> {
     let ata = m.transpose() * m;
     smallest_by_inverse_iteration(&ata).or_else(|| smallest_by_decomposition(&ata))
