@@ -76,3 +76,60 @@ fn degraded_exit_code_and_bad_input_errors() {
         .unwrap();
     assert_eq!(out.status.code(), Some(1));
 }
+
+/// `rigcal detect` reads its target (and camera) from a file or inline, and a wrong
+/// path is named as the option it came from.
+#[test]
+fn detect_reads_its_target_from_a_file_or_inline() {
+    use rigcal_synth::tagscene::{scene, Lens, SceneParams};
+    let s = scene(&SceneParams {
+        grid: false,
+        tag_px: 80.0,
+        obliquity_deg: 20.0,
+        lens: Lens::Pinhole,
+        width: 640,
+        height: 480,
+        render: Default::default(),
+        seed: 1,
+    });
+    let dir = tempfile::tempdir().unwrap();
+    let image = dir.path().join("tag.png");
+    s.image.save(&image).unwrap();
+    let target = serde_json::to_string(&s.targets).unwrap();
+    let file = dir.path().join("target.json");
+    std::fs::write(&file, &target).unwrap();
+    let detect = |target: &std::ffi::OsStr| {
+        rigcal()
+            .args(["detect", "--threads", "1", "--target"])
+            .arg(target)
+            .arg(&image)
+            .output()
+            .unwrap()
+    };
+    let ids = |out: &std::process::Output| -> Vec<u64> {
+        assert_eq!(
+            out.status.code(),
+            Some(0),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+        doc["tags"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|t| t["id"].as_u64().unwrap())
+            .collect()
+    };
+    let want: Vec<u64> = s.truth.keys().map(|&id| id as u64).collect();
+    assert!(!want.is_empty());
+    assert_eq!(ids(&detect(file.as_os_str())), want);
+    assert_eq!(ids(&detect(std::ffi::OsStr::new(&target))), want);
+    let missing = detect(dir.path().join("nowhere.json").as_os_str());
+    assert_eq!(missing.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&missing.stderr);
+    assert!(
+        err.contains("--target") && err.contains("nowhere.json"),
+        "{err}"
+    );
+}

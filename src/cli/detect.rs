@@ -16,13 +16,14 @@ pub struct Args {
     #[arg(required = true)]
     images: Vec<PathBuf>,
     /// A target definition as in a session's `targets[]` (aprilgrid or apriltags),
-    /// or an array of them.
+    /// or an array of them: a JSON file, or the JSON itself.
     #[arg(long)]
-    target: PathBuf,
+    target: String,
     /// A camera as in a session's `cameras[]`: sides are then fitted in the
-    /// undistorted plane (better corners under distortion).
+    /// undistorted plane (better corners under distortion). A JSON file, or the JSON
+    /// itself.
     #[arg(long)]
-    camera: Option<PathBuf>,
+    camera: Option<String>,
     /// Threads for the tags of one image (default: the machine's cores; 1 to time a
     /// single core).
     #[arg(long, value_parser = RangedU64ValueParser::<usize>::new().range(1..=256))]
@@ -36,11 +37,22 @@ fn read(p: &Path) -> Result<Vec<u8>> {
     std::fs::read(p).with_context(|| format!("reading {}", p.display()))
 }
 
+/// The JSON of option `flag`: `arg` itself when it is JSON (an object or an array), else
+/// the file it names. A path never starts with `{` or `[` in practice; one that does is
+/// given as `./{…`.
+fn json_arg(flag: &str, arg: &str) -> Result<Vec<u8>> {
+    if arg.trim_start().starts_with(['{', '[']) {
+        Ok(arg.as_bytes().to_vec())
+    } else {
+        read(Path::new(arg)).with_context(|| format!("{flag}: neither JSON nor a readable file"))
+    }
+}
+
 pub fn run(a: Args) -> Result<i32> {
     let threads = a
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let text = read(&a.target)?;
+    let text = json_arg("--target", &a.target)?;
     let targets: Vec<TargetSpec> = match serde_json::from_slice::<Vec<TargetSpec>>(&text) {
         Ok(t) => t,
         Err(_) => vec![serde_json::from_slice::<TargetSpec>(&text).map_err(|e| {
@@ -49,7 +61,7 @@ pub fn run(a: Args) -> Result<i32> {
     };
     let camera = match &a.camera {
         Some(p) => {
-            let spec: CameraSpec = serde_json::from_slice(&read(p)?)
+            let spec: CameraSpec = serde_json::from_slice(&json_arg("--camera", p)?)
                 .map_err(|e| anyhow!("--camera: a camera as in a session's cameras[]: {e}"))?;
             Some(camera_from_spec(&spec, "camera").map_err(|e| anyhow!("--camera: {e}"))?)
         }
