@@ -626,6 +626,35 @@ fn bad_images_are_skipped_and_reported() {
     assert!(dt < 0.005 && dr < 0.1, "rear off by {dt} m, {dr}°");
 }
 
+/// A camera declared at another size than its images has every image skipped; the
+/// failure names them and the size, not only a camera that saw no target.
+#[test]
+fn a_camera_whose_images_are_all_skipped_is_reported_with_their_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let (path, _) = image_session(dir.path());
+    let mut session: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    session["cameras"][1]["width"] = 1280.into();
+    session["cameras"][1]["height"] = 960.into();
+    std::fs::write(&path, serde_json::to_vec(&session).unwrap()).unwrap();
+    let doc = calibrate(&path);
+    assert_eq!(doc["status"], "failed", "{doc:#}");
+    let reason = doc["reasons"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|r| r["camera"] == "rear")
+        .unwrap_or_else(|| panic!("no reason names rear: {:#}", doc["reasons"]));
+    assert_eq!(reason["code"], "camera_not_observed");
+    let message = reason["message"].as_str().unwrap();
+    assert!(
+        message.contains("8 of its 8 images were skipped")
+            && message.contains("frames[0].images.rear")
+            && message.contains("1280×960"),
+        "{message}"
+    );
+}
+
 /// Boards cut by every image border, through every lens: every reported corner is
 /// measured by pixels inside the image (at least `BORDER_MARGIN` from the border), is
 /// within 0.5 px of the truth, and the detections make a valid session; the tags whose

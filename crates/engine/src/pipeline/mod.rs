@@ -293,6 +293,7 @@ pub fn calibrate_detected(
     };
     let mut doc = calibrate_with(detected, opts, progress)?;
     if let Some(r) = &report {
+        name_skipped_images(&mut doc.reasons, r);
         doc.stages.insert(
             0,
             Stage {
@@ -303,6 +304,46 @@ pub fn calibrate_detected(
     }
     doc.detection = report;
     Ok(doc)
+}
+
+/// A camera short of observations because images of it were skipped says which and
+/// why: the images' own error (a size other than the camera's, bytes that are no image)
+/// is what the operator must fix, where the reason alone reads as a capture that missed
+/// the targets.
+fn name_skipped_images(reasons: &mut [Reason], report: &DetectionReport) {
+    const COVERAGE: [ReasonCode; 3] = [
+        ReasonCode::CameraNotObserved,
+        ReasonCode::TooFewMotions,
+        ReasonCode::LinesUnusable,
+    ];
+    for r in reasons {
+        let Some(camera) = r.camera.as_deref() else {
+            continue;
+        };
+        if !COVERAGE.iter().any(|c| c.as_str() == r.code) {
+            continue;
+        }
+        let images: Vec<&ImageReport> = report
+            .images
+            .iter()
+            .filter(|i| i.camera == camera)
+            .collect();
+        let skipped: Vec<&ImageReport> = images
+            .iter()
+            .copied()
+            .filter(|i| i.error.is_some())
+            .collect();
+        if let Some(first) = skipped.first() {
+            r.message.push_str(&format!(
+                "; {} of its {} images were skipped ({}: {}{})",
+                skipped.len(),
+                images.len(),
+                first.field,
+                first.error.as_deref().unwrap_or_default(),
+                if skipped.len() > 1 { "; ..." } else { "" }
+            ));
+        }
+    }
 }
 
 /// Run the motion method on a validated session.
