@@ -1,8 +1,11 @@
 //! Realistic captures end to end (`rigcal bench capture`): a hall preset rendered as
 //! images, every trial with other noise, detected and calibrated as a user's session is;
 //! the detection against each image's true corners and the result against the truth,
-//! with the error of every translation axis in units of its reported σ.
+//! with the error of every translation axis in units of its reported σ, and of every
+//! camera's whole pose in its reported covariance (NEES).
 
+use crate::accuracy::error6;
+use nalgebra::Matrix6;
 use rigcal_core::result::{DetectionQuality, ExtrinsicValue, Status};
 use rigcal_core::session::parse_session;
 use rigcal_engine::pipeline::detection::{detect_session, MemorySource};
@@ -30,6 +33,10 @@ pub struct CaptureTrial {
     pub worst_r_deg: f64,
     /// Per camera and translation axis: error / reported σ (axes without σ left out).
     pub z: Vec<f64>,
+    /// Per camera: the normalised estimation error squared of `[dt; dφ]` in the
+    /// reported 6×6 covariance (6 is honest), for results with every direction
+    /// determined. The per-axis `z` cannot see a covariance whose correlations are off.
+    pub nees: Vec<f64>,
     pub detection_s: f64,
     pub total_s: f64,
 }
@@ -108,7 +115,13 @@ pub fn capture_trials(
                 }
             }
         }
-        let (mut worst_t, mut worst_r, mut z) = (0.0f64, 0.0f64, Vec::new());
+        let (mut worst_t, mut worst_r, mut z, mut nees) = (0.0f64, 0.0f64, Vec::new(), Vec::new());
+        // NEES only where every direction is determined: elsewhere the covariance is
+        // singular along the held heights.
+        let held = doc
+            .singularity
+            .as_ref()
+            .is_some_and(|s| !s.unobservable_directions.is_empty());
         if doc.status != Status::Failed {
             for e in &doc.extrinsics {
                 let truth = capture.truth.ref_from_cam[&e.value.camera];
@@ -120,6 +133,14 @@ pub fn capture_trials(
                     if let Some(s) = e.sigma_translation_m[a].filter(|s| *s > 0.0) {
                         z.push((est.trans[a] - truth.trans[a]) / s);
                     }
+                }
+                let inv = e
+                    .covariance
+                    .filter(|_| !held)
+                    .and_then(|c| Matrix6::from_fn(|a, b| c[a][b]).try_inverse());
+                if let Some(inv) = inv {
+                    let x = error6(&est, &truth);
+                    nees.push(x.dot(&(inv * x)));
                 }
             }
         }
@@ -139,6 +160,7 @@ pub fn capture_trials(
             worst_t_mm: worst_t,
             worst_r_deg: worst_r,
             z,
+            nees,
             detection_s: doc.detection.as_ref().map_or(0.0, |d| d.seconds),
             total_s,
         });
@@ -155,7 +177,7 @@ pub fn capture_trials(
 pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
     println!("preset {preset}: rendered captures through detection and calibration");
     println!(
-        "{:>6} {:>10} {:>8} {:>8} {:>6} {:>9} {:>8} {:>9} {:>9} {:>7} {:>7} {:>7} {:>7}",
+        "{:>6} {:>10} {:>8} {:>8} {:>6} {:>9} {:>8} {:>9} {:>9} {:>7} {:>7} {:>6} {:>7} {:>7}",
         "seed",
         "status",
         "legible",
@@ -167,16 +189,20 @@ pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
         "worst °",
         "|z|max",
         "z rms",
+        "NEES",
         "det s",
         "total s"
     );
     let mut all_z = Vec::new();
+    let mut all_nees = Vec::new();
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
     for r in rows {
         let zmax = r.z.iter().fold(0.0f64, |m, z| m.max(z.abs()));
         let zrms = (r.z.iter().map(|z| z * z).sum::<f64>() / r.z.len().max(1) as f64).sqrt();
         all_z.extend(r.z.iter().copied());
+        all_nees.extend(r.nees.iter().copied());
         println!(
-            "{:>6} {:>10} {:>8} {:>8.2} {:>6} {:>9.4} {:>8.4} {:>9.3} {:>9.5} {:>7.2} {:>7.2} {:>7.1} {:>7.1}",
+            "{:>6} {:>10} {:>8} {:>8.2} {:>6} {:>9.4} {:>8.4} {:>9.3} {:>9.5} {:>7.2} {:>7.2} {:>6.1} {:>7.1} {:>7.1}",
             r.seed,
             r.status,
             r.legible_tags,
@@ -188,6 +214,7 @@ pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
             r.worst_r_deg,
             zmax,
             zrms,
+            mean(&r.nees),
             r.detection_s,
             r.total_s
         );
@@ -196,8 +223,10 @@ pub fn print_table(preset: &str, rows: &[CaptureTrial]) {
     let zrms = (all_z.iter().map(|z| z * z).sum::<f64>() / all_z.len().max(1) as f64).sqrt();
     let zmax = all_z.iter().fold(0.0f64, |m, z| m.max(z.abs()));
     println!(
-        "{ok}/{} not failed; over all cameras and axes: z rms {zrms:.2}, |z| max {zmax:.2} ({} axes)",
+        "{ok}/{} not failed; over all cameras and axes: z rms {zrms:.2}, |z| max {zmax:.2} ({} axes); NEES mean {:.1} over {} camera poses (6 is honest)",
         rows.len(),
-        all_z.len()
+        all_z.len(),
+        mean(&all_nees),
+        all_nees.len()
     );
 }
