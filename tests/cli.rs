@@ -6,6 +6,17 @@ fn rigcal() -> Command {
     Command::new(env!("CARGO_BIN_EXE_rigcal"))
 }
 
+/// The JSON a successful run printed (exit 0, else its stderr is the failure).
+fn printed_json(out: &std::process::Output) -> serde_json::Value {
+    assert_eq!(
+        out.status.code(),
+        Some(0),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
 #[test]
 fn synth_then_calibrate_prints_the_result_document() {
     let dir = tempfile::tempdir().unwrap();
@@ -29,13 +40,7 @@ fn synth_then_calibrate_prints_the_result_document() {
         .arg(dir.path().join("session.json"))
         .output()
         .unwrap();
-    assert_eq!(
-        out.status.code(),
-        Some(0),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let doc = printed_json(&out);
     assert_eq!(doc["status"], "succeeded");
     assert_eq!(doc["extrinsics"].as_array().unwrap().len(), 2);
     let out = rigcal()
@@ -107,14 +112,7 @@ fn detect_reads_its_target_from_a_file_or_inline() {
             .unwrap()
     };
     let ids = |out: &std::process::Output| -> Vec<u64> {
-        assert_eq!(
-            out.status.code(),
-            Some(0),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let doc: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
-        doc["tags"]
+        printed_json(out)["tags"]
             .as_array()
             .unwrap()
             .iter()
