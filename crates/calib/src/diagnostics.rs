@@ -8,9 +8,10 @@ use super::motion::MotionClass;
 use super::rig_ba::RigBaOutput;
 use super::trajectory::Trajectories;
 use nalgebra::{DMatrix, DVector};
-use rigcal_core::geometry::Vec3;
+use rigcal_core::geometry::{Vec2, Vec3};
 use rigcal_core::result::*;
 use rigcal_core::session::Session;
+use rigcal_solve::bundle::{BundleProblem, Obs};
 use std::collections::BTreeMap;
 
 /// A direction is unobservable when its 1-σ (at ≥ 0.1 px noise) exceeds this many
@@ -131,8 +132,14 @@ pub struct Observability {
 }
 
 /// `sigma_floor_px`: the least corner noise the covariance assumes (see
-/// `pipeline::detected_corner_sigma_floor_px`).
-pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observability> {
+/// `pipeline::detected_corner_sigma_floor_px`); `corner_scale_sigma`: the relative scale
+/// error of each camera's corners about its principal point the covariance allows for
+/// besides (0: none; see [`corner_scale_covariance`]).
+pub fn observability(
+    ba: &RigBaOutput,
+    sigma_floor_px: f64,
+    corner_scale_sigma: f64,
+) -> Option<Observability> {
     let (cams, info) = ba.information.clone()?;
     let n = info.nrows();
     let sym = (&info + info.transpose()) * 0.5;
@@ -165,6 +172,15 @@ pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observabil
             cov += &v * v.transpose() * (sigma * sigma / l);
         }
     }
+    if corner_scale_sigma > 0.0 {
+        // Along the observable directions only: the others are reported as null.
+        let observable = (0..n)
+            .filter(|&k| !is_unobservable(eig.eigenvalues[k], lmax, sigma))
+            .map(|k| eig.eigenvectors.column(k).into_owned())
+            .fold(DMatrix::zeros(n, n), |p, v| p + &v * v.transpose());
+        let scale = corner_scale_covariance(&ba.problem, &cams, corner_scale_sigma)?;
+        cov += &observable * scale * &observable;
+    }
     let per_cov = cams
         .iter()
         .enumerate()
@@ -189,6 +205,42 @@ pub fn observability(ba: &RigBaOutput, sigma_floor_px: f64) -> Option<Observabil
         cams,
         per_camera_eigen,
     })
+}
+
+/// Covariance (joint, over the free cameras `cams`) of the extrinsics that a relative
+/// scale error of σ `scale_sigma` in each camera's corners about its principal point
+/// causes, one error per camera, independent between cameras.
+///
+/// Why: a systematic error that every corner of a camera shares does not average down
+/// over thousands of corners the way their noise does, and where the extrinsics are
+/// determined to 10⁻⁶ (a fisheye pair seeing 12 000 corners) a scale of 10⁻⁶ is as
+/// large as their σ. A focal length a few ppm off is such a scale, and so is a radial
+/// bias of the detector (docs/accuracy.md, "The whole covariance on images").
+/// `None` when the state cannot be linearised, or when its free cameras are not `cams`
+/// (an internal inconsistency).
+pub fn corner_scale_covariance(
+    problem: &BundleProblem,
+    cams: &[usize],
+    scale_sigma: f64,
+) -> Option<DMatrix<f64>> {
+    let about = |c: usize, o: &Obs| {
+        if o.cam == c {
+            let cam = &problem.cameras[c];
+            o.uv - Vec2::new(cam.cx, cam.cy)
+        } else {
+            Vec2::zeros()
+        }
+    };
+    let (free, sens) = problem.extrinsic_sensitivities(problem.cameras.len(), about)?;
+    if free != cams {
+        return None;
+    }
+    let n = 6 * cams.len();
+    Some(
+        sens.iter()
+            .fold(DMatrix::zeros(n, n), |c, v| c + v * v.transpose())
+            * (scale_sigma * scale_sigma),
+    )
 }
 
 /// Rank of the null directions restricted to rows `[off, off+3)`: DOF lost there.
