@@ -30,11 +30,9 @@ impl Gray {
 
     /// 8-bit copy, rounded, for the AprilTag quad detector.
     pub fn to_u8(&self) -> Vec<u8> {
-        self.data
-            .iter()
-            // (+½ then truncate: `f32::round` is a libm call per pixel.)
-            .map(|v| (v + 0.5).clamp(0.0, 255.0) as u8)
-            .collect()
+        let mut out = vec![0u8; self.data.len()];
+        rounded_to_u8(&self.data, &mut out);
+        out
     }
 
     /// Robust estimate of the image noise σ (grey levels), from the median response of
@@ -52,18 +50,16 @@ impl Gray {
         }
         // Median of |response| from a histogram (bins of 1/4 grey level): O(n), where a
         // selection over the 480 000 responses of a 1600×1200 image took 4 ms.
-        const BIN: f32 = 0.25;
-        const BINS: usize = 4096;
-        let mut hist = vec![0u32; BINS + 1];
+        let mut hist = vec![0u32; RESPONSE_BINS + 1];
         let mut n = 0u32;
+        let mut bins = vec![0u16; w - 2];
         for y in (1..h - 1).step_by(2) {
-            // The three rows as slices, walked by 3-pixel windows: no index arithmetic
-            // or bounds check per pixel.
-            let rows = |r: usize| self.data[r * w..(r + 1) * w].windows(3).step_by(2);
-            for ((a, b), c) in rows(y - 1).zip(rows(y)).zip(rows(y + 1)) {
-                let v = a[0] + a[2] + c[0] + c[2] - 2.0 * (a[1] + b[0] + b[2] + c[1]) + 4.0 * b[1];
-                let bin = ((v.abs() / BIN) as usize).min(BINS);
-                hist[bin] += 1;
+            let row = |r: usize| &self.data[r * w..(r + 1) * w];
+            // The whole row's bins first, in vector lanes; the histogram, which does not
+            // vectorise, then counts every other one.
+            response_bins(row(y - 1), row(y), row(y + 1), &mut bins);
+            for &bin in bins.iter().step_by(2) {
+                hist[bin as usize] += 1;
                 n += 1;
             }
         }
@@ -74,12 +70,13 @@ impl Gray {
             if below + c >= half && c > 0.0 {
                 // Within the bin, linearly (8-bit images give integer responses, all at
                 // bin starts: off by under a bin, 0.06 grey levels of σ).
-                let m = b as f64 * BIN as f64 + (half - below) / c * BIN as f64;
+                let bin = RESPONSE_BIN as f64;
+                let m = b as f64 * bin + (half - below) / c * bin;
                 return m / (0.6745 * 6.0);
             }
             below += c;
         }
-        BINS as f64 * BIN as f64 / (0.6745 * 6.0)
+        RESPONSE_BINS as f64 * RESPONSE_BIN as f64 / (0.6745 * 6.0)
     }
 
     /// Bilinear sample at `p` (pixel-centre convention: pixel `(i, j)` is at `(i, j)`);
@@ -108,11 +105,70 @@ impl Gray {
     }
 }
 
+/// Width of a bin of the noise estimate's histogram of mask responses (grey levels),
+/// and the number of bins (responses beyond the last count in it).
+const RESPONSE_BIN: f32 = 0.25;
+const RESPONSE_BINS: usize = 4096;
+
+rigcal_core::avx2_or_portable! {
+/// Immerkær's mask on three rows `a`, `b`, `c`: `out[x]` is the histogram bin of its
+/// response centred on `b[x + 1]` (`out` is two shorter than the rows).
+fn response_bins(a: &[f32], b: &[f32], c: &[f32], out: &mut [u16]) {
+    let n = out.len();
+    // Cut to the length used, so the loop has no bounds check and vectorises.
+    let (a, b, c) = (&a[..n + 2], &b[..n + 2], &c[..n + 2]);
+    for x in 0..n {
+        let v = a[x] + a[x + 2] + c[x] + c[x + 2]
+            - 2.0 * (a[x + 1] + b[x] + b[x + 2] + c[x + 1])
+            + 4.0 * b[x + 1];
+        // `max` returns 0 for a NaN: the bin is finite and in 0..=RESPONSE_BINS.
+        let bin = (v.abs() / RESPONSE_BIN).max(0.0).min(RESPONSE_BINS as f32);
+        // SAFETY: `bin` is finite and within `i32`'s range (just above).
+        out[x] = unsafe { bin.to_int_unchecked::<i32>() } as u16;
+    }
+}
+}
+
+rigcal_core::avx2_or_portable! {
+/// `v` rounded half up and clamped to 0..=255, into `out`: +½ then truncate
+/// (`f32::round` is a libm call per pixel). The clamp comes first and the conversion is
+/// the unchecked one, so the loop is four vector instructions a lane; the saturating
+/// `as` casts (to `u8` or `i32`) kept it a pixel at a time, 8.5 instructions a pixel and
+/// 4 % of `fast` detection on a 1080p hall image.
+fn rounded_to_u8(v: &[f32], out: &mut [u8]) {
+    for (o, v) in out.iter_mut().zip(v) {
+        // `max` returns 0 for a NaN, so the value is finite and in 0..=255.
+        let x = (v + 0.5).max(0.0).min(255.0);
+        // SAFETY: `x` is finite and within `i32`'s range (just above).
+        *o = unsafe { x.to_int_unchecked::<i32>() } as u8;
+    }
+}
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_distr::{Distribution, Normal};
+
+    #[test]
+    fn the_8_bit_copy_rounds_half_up_and_clamps() {
+        let data: Vec<f32> = (-2000..300_000)
+            .map(|i| i as f32 / 1000.0)
+            .chain([-1e9, -0.5, 0.49999997, 0.5, 254.5, 255.49998, 255.5, 1e9])
+            .chain([f32::NAN, f32::INFINITY, f32::NEG_INFINITY])
+            .collect();
+        let g = Gray {
+            width: data.len(),
+            height: 1,
+            data: data.clone(),
+        };
+        let want: Vec<u8> = data
+            .iter()
+            .map(|v| (v + 0.5).clamp(0.0, 255.0) as u8)
+            .collect();
+        assert_eq!(g.to_u8(), want);
+    }
 
     #[test]
     fn noise_sigma_is_recovered_on_shaded_images_with_edges() {
