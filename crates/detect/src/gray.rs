@@ -110,6 +110,18 @@ impl Gray {
 const RESPONSE_BIN: f32 = 0.25;
 const RESPONSE_BINS: usize = 4096;
 
+/// `x` clamped to `0..=hi` (a NaN to 0) and truncated: in vector lanes where a
+/// saturating `as` conversion runs a value at a time on x86. `hi` must be below 2³¹.
+#[inline(always)]
+fn truncated_within(x: f32, hi: f32) -> i32 {
+    // `max` returns 0 for a NaN, so the value is finite and in 0..=hi (`clamp` would
+    // keep the NaN, which the unchecked conversion must not see).
+    #[allow(clippy::manual_clamp)]
+    let x = x.max(0.0).min(hi);
+    // SAFETY: `x` is finite and within `i32`'s range (just above, `hi` < 2³¹).
+    unsafe { x.to_int_unchecked::<i32>() }
+}
+
 rigcal_core::avx2_or_portable! {
 /// Immerkær's mask on three rows `a`, `b`, `c`: `out[x]` is the histogram bin of its
 /// response centred on `b[x + 1]` (`out` is two shorter than the rows).
@@ -121,12 +133,7 @@ fn response_bins(a: &[f32], b: &[f32], c: &[f32], out: &mut [u16]) {
         let v = a[x] + a[x + 2] + c[x] + c[x + 2]
             - 2.0 * (a[x + 1] + b[x] + b[x + 2] + c[x + 1])
             + 4.0 * b[x + 1];
-        // `max` returns 0 for a NaN: the bin is finite and in 0..=RESPONSE_BINS
-        // (`clamp` would keep the NaN).
-        #[allow(clippy::manual_clamp)]
-        let bin = (v.abs() / RESPONSE_BIN).max(0.0).min(RESPONSE_BINS as f32);
-        // SAFETY: `bin` is finite and within `i32`'s range (just above).
-        out[x] = unsafe { bin.to_int_unchecked::<i32>() } as u16;
+        out[x] = truncated_within(v.abs() / RESPONSE_BIN, RESPONSE_BINS as f32) as u16;
     }
 }
 }
@@ -139,12 +146,7 @@ rigcal_core::avx2_or_portable! {
 /// 4 % of `fast` detection on a 1080p hall image.
 fn rounded_to_u8(v: &[f32], out: &mut [u8]) {
     for (o, v) in out.iter_mut().zip(v) {
-        // `max` returns 0 for a NaN, so the value is finite and in 0..=255 (`clamp`
-        // would keep the NaN, which the unchecked conversion must not see).
-        #[allow(clippy::manual_clamp)]
-        let x = (v + 0.5).max(0.0).min(255.0);
-        // SAFETY: `x` is finite and within `i32`'s range (just above).
-        *o = unsafe { x.to_int_unchecked::<i32>() } as u8;
+        *o = truncated_within(v + 0.5, 255.0) as u8;
     }
 }
 }
