@@ -87,12 +87,15 @@ impl Gray {
             return None;
         }
         // Non-negative here, so truncation is the floor, without a libm call (x86-64's
-        // baseline has no rounding instruction).
-        let (x0, y0) = (p.x as usize, p.y as usize);
+        // baseline has no rounding instruction). Through `i64`: one instruction each way
+        // where `usize` takes several, and a coordinate far out (or infinite) saturates
+        // at `i64::MAX`, which the bounds below refuse without overflowing.
+        let (xi, yi) = (p.x as i64, p.y as i64);
+        let (x0, y0) = (xi as usize, yi as usize);
         if x0 + 1 >= self.width || y0 + 1 >= self.height {
             return None;
         }
-        let (fx, fy) = (p.x - x0 as f64, p.y - y0 as f64);
+        let (fx, fy) = (p.x - xi as f64, p.y - yi as f64);
         // The 2×2 neighbourhood as two row pairs: two bounds checks instead of four.
         let i = y0 * self.width + x0;
         let (top, bottom) = (
@@ -174,6 +177,44 @@ mod tests {
             .map(|v| (v + 0.5).clamp(0.0, 255.0) as u8)
             .collect();
         assert_eq!(g.to_u8(), want);
+    }
+
+    /// Bilinear inside the pixel centres' hull, `None` outside it, whatever the point: a
+    /// degenerate homography can put one at 1e300 or at infinity (once the cell index
+    /// was taken as `usize`, such a point overflowed `x0 + 1` and panicked on the
+    /// slice).
+    #[test]
+    fn samples_are_bilinear_inside_and_none_anywhere_outside() {
+        let (w, h) = (5, 4);
+        let g = Gray {
+            width: w,
+            height: h,
+            data: (0..w * h)
+                .map(|i| ((i % w) * 10 + (i / w) * 100) as f32)
+                .collect(),
+        };
+        let at = |x: f64, y: f64| g.sample(Vec2::new(x, y));
+        assert_eq!(at(0.0, 0.0), Some(0.0));
+        assert_eq!(at(1.25, 2.5), Some(12.5 + 250.0));
+        assert_eq!(
+            at(3.999, 2.0).map(|v| (v * 1e3).round() / 1e3),
+            Some(239.99)
+        );
+        for (x, y) in [
+            (4.0, 1.0),
+            (1.0, 3.0),
+            (-0.001, 1.0),
+            (1e300, 0.5),
+            (0.5, 1e300),
+            (f64::INFINITY, 0.5),
+            (0.5, f64::INFINITY),
+            (f64::NEG_INFINITY, 0.5),
+            (f64::NAN, 0.5),
+            (0.5, f64::NAN),
+            (9.3e18, 9.3e18),
+        ] {
+            assert_eq!(at(x, y), None, "({x}, {y})");
+        }
     }
 
     #[test]
