@@ -12,6 +12,11 @@ pub struct Gray {
 
 impl Gray {
     pub fn from_dynamic(img: &image::DynamicImage) -> Gray {
+        // 8-bit grey (most captures) is read as it is: `to_luma32f` × 255 gives the same
+        // levels bit for bit, through a second full-size copy.
+        if let image::DynamicImage::ImageLuma8(g) = img {
+            return Gray::from_luma8(g);
+        }
         let l = img.to_luma32f();
         Gray {
             width: l.width() as usize,
@@ -177,6 +182,24 @@ mod tests {
             .map(|v| (v + 0.5).clamp(0.0, 255.0) as u8)
             .collect();
         assert_eq!(g.to_u8(), want);
+    }
+
+    /// An 8-bit grey image read directly has the levels of the general conversion.
+    #[test]
+    fn grey_images_are_read_at_the_general_conversions_levels() {
+        let g = image::GrayImage::from_fn(256, 3, |x, y| {
+            image::Luma([(x as u8).wrapping_add(y as u8 * 7)])
+        });
+        let dynamic = image::DynamicImage::ImageLuma8(g);
+        let general: Vec<f32> = dynamic
+            .to_luma32f()
+            .into_raw()
+            .into_iter()
+            .map(|v| v * 255.0)
+            .collect();
+        let read = Gray::from_dynamic(&dynamic);
+        assert_eq!((read.width, read.height), (256, 3));
+        assert_eq!(read.data, general);
     }
 
     /// Bilinear inside the pixel centres' hull, `None` outside it, whatever the point: a

@@ -514,6 +514,12 @@ fn refine_once(
         .iter()
         .map(|q| lens.to_pixel(*q))
         .collect::<Option<_>>()?;
+    // A polygon with a corner far outside the image (or not finite) has nothing to
+    // measure there, and its side lengths would size the sampling below.
+    let far = 1e7 + (img.width + img.height) as f64;
+    if px.iter().any(|p| !(p.x.abs() < far && p.y.abs() < far)) {
+        return None;
+    }
     // Orientation in raw pixels: the outward normal of side a→b is sign·(t.y, −t.x).
     let area2: f64 = (0..n_sides)
         .map(|k| {
@@ -734,6 +740,25 @@ mod tests {
     fn corners_of_a_nearly_axis_aligned_square_are_exact() {
         let (gray, truth) = turned_square(0.3);
         assert_refined_within_0_02(&gray, &truth, 1.0);
+    }
+
+    /// Rough corners far outside the image or not finite are refused: a side 10¹⁹ px long
+    /// once sized its sampling at ~10¹⁸ profiles (a capacity overflow, a panic).
+    #[test]
+    fn polygons_far_outside_the_image_are_refused() {
+        let (gray, truth) = turned_square(0.3);
+        for far in [1e19, -1e19, 1e12, f64::INFINITY, f64::NAN] {
+            for k in 0..4 {
+                let mut c = truth;
+                c[k].x = far;
+                for spacing in [1.0, INDEPENDENT_SPACING] {
+                    assert!(
+                        refine_quad(&gray, &c, Lens(None), 4.0, spacing).is_none(),
+                        "{c:?}"
+                    );
+                }
+            }
+        }
     }
 
     /// A 40 px square, whose border cell (5 px) reads the levels nearer than the fit's

@@ -260,6 +260,9 @@ struct Compared {
 /// Margin (px) of the sub-sample grid round the compared pixels: the blur kernel's reach
 /// at the largest σ accepted.
 const KERNEL_REACH_PX: i64 = 6;
+/// How far (px) from the image's origin a region's bounds may lie: far beyond any image,
+/// and far within the integers the bounds become.
+const FAR_PX: f64 = 1e7;
 /// Spacing (px) of the grid on which the lens is unprojected for a region.
 const COARSE: usize = 4;
 const MAX_SIGMA: f64 = 1.5;
@@ -285,6 +288,12 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
             lo = lo.inf(&p);
             hi = hi.sup(&p);
         }
+    }
+    // Bounds far outside any image (a degenerate quad whose ring runs off towards its
+    // horizon) are refused while they are floats: as integers they could overflow, and
+    // the size check below wrap round to a small number.
+    if !(lo.x > -FAR_PX && lo.y > -FAR_PX && hi.x < FAR_PX && hi.y < FAR_PX) {
+        return None;
     }
     let x0 = lo.x.floor() as i64 - KERNEL_REACH_PX;
     let y0 = lo.y.floor() as i64 - KERNEL_REACH_PX;
@@ -957,6 +966,17 @@ pub fn fit_whole_tag(
     surround: Surround,
     edge_blur: Option<f64>,
 ) -> Option<WholeFit> {
+    // A start thinner than half a pixel per cell (or not finite) is no tag: a
+    // degenerate quad, which the model could still be bent to.
+    let shortest_side = (0..4)
+        .map(|k| (start[(k + 1) % 4] - start[k]).norm())
+        .fold(f64::INFINITY, f64::min);
+    if start.iter().any(|c| !(c.x.is_finite() && c.y.is_finite()))
+        || shortest_side < MIN_START_PX
+        || shallowest_extent(start) < MIN_START_PX
+    {
+        return None;
+    }
     let reg = region(img, start, lens, SUB)?;
     if reg.pixels.len() < 64 {
         return None;
@@ -980,6 +1000,10 @@ pub fn fit_whole_tag(
         misfit: corner_misfit(&reg, &corners, lens, &r)?.map(|m| m > MAX_CORNER_MISFIT),
     })
 }
+
+/// Smallest side and extent (px) of a start the fit takes: half a pixel per cell, far
+/// below the smallest legible tag (~12 px, 1.5 px per cell).
+const MIN_START_PX: f64 = 4.0;
 
 /// Width (px) of the box by which the sharp pattern is smoothed (a box of
 /// [`AA_SUBSAMPLES`] sub-samples): part of the blur the image shows that the fit's σ
@@ -1498,6 +1522,74 @@ mod tests {
         // Another id's pattern does not fit: the levels or the corners give it away.
         let other = fit_whole_tag(&img, truth, lens, wrong_id, Surround::Single, None);
         assert!(other.as_ref().is_none_or(|f| f.rms > 3.0), "{other:?}");
+    }
+
+    /// Degenerate quads (corners at 1e19 px or beyond, three in a line, all four on one
+    /// point, a sliver whose ring runs past its horizon, a triangle) are refused, with
+    /// and without a lens, without panicking, overflowing into a huge region or hanging
+    /// in one. (The sliver was fitted, a hundredth of a pixel thin, before starts were
+    /// held to half a pixel per cell.)
+    #[test]
+    fn degenerate_quads_are_refused() {
+        let s = small_tag(SceneLens::Radtan, false, 30.0, 20.0, 2.0, 9);
+        let (&id, _) = s.truth.iter().next().expect("a tag in view");
+        let img = Gray::from_luma8(&s.image);
+        let p = |x: f64, y: f64| Vec2::new(x, y);
+        let quads = [
+            [
+                p(100.0, 100.0),
+                p(1e19, 100.0),
+                p(1e19, 130.0),
+                p(100.0, 130.0),
+            ],
+            [
+                p(-1e19, 100.0),
+                p(130.0, 100.0),
+                p(130.0, 130.0),
+                p(100.0, 1e19),
+            ],
+            [
+                p(100.0, 100.0),
+                p(120.0, 100.0),
+                p(140.0, 100.0),
+                p(120.0, 130.0),
+            ],
+            [p(100.0, 100.0); 4],
+            [
+                p(100.0, 100.0),
+                p(130.0, 100.0),
+                p(115.001, 100.01),
+                p(114.999, 100.01),
+            ],
+            [
+                p(100.0, 100.0),
+                p(130.0, 100.0),
+                p(115.0005, 130.0),
+                p(114.9995, 130.0),
+            ],
+            [
+                p(f64::INFINITY, 100.0),
+                p(130.0, 100.0),
+                p(130.0, 130.0),
+                p(100.0, 130.0),
+            ],
+            [
+                p(f64::NAN, 100.0),
+                p(130.0, 100.0),
+                p(130.0, 130.0),
+                p(100.0, 130.0),
+            ],
+        ];
+        for lens in [Lens(None), Lens(Some(&s.camera))] {
+            for q in &quads {
+                for surround in [Surround::Single, Surround::Grid { gap_cells: 2.4 }] {
+                    assert!(
+                        fit_whole_tag(&img, q, lens, id, surround, Some(0.6)).is_none(),
+                        "{q:?}"
+                    );
+                }
+            }
+        }
     }
 
     /// A blot on the tag (a dark smudge over the white ring by one side, a bright glint
