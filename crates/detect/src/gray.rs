@@ -92,9 +92,10 @@ impl Gray {
             return None;
         }
         // Non-negative here, so truncation is the floor, without a libm call (x86-64's
-        // baseline has no rounding instruction). Through `i64`: one instruction each way
-        // where `usize` takes several, and a coordinate far out (or infinite) saturates
-        // at `i64::MAX`, which the bounds below refuse without overflowing.
+        // baseline has no rounding instruction). Through `i64`: fewer instructions each
+        // way than `usize` (x86-64 converts signed integers only), and a coordinate far
+        // out (or infinite) saturates at `i64::MAX`, which the bounds below refuse
+        // without overflowing.
         let (xi, yi) = (p.x as i64, p.y as i64);
         let (x0, y0) = (xi as usize, yi as usize);
         if x0 + 1 >= self.width || y0 + 1 >= self.height {
