@@ -175,6 +175,17 @@ fn edge_offset(img: &Gray, p: Vec2, n: Vec2, reach: f64, d: f64, tol: f64) -> Op
     (e.abs() <= reach + d).then_some((e, contrast))
 }
 
+/// How far (px) from the image's origin a point may lie and still be measured
+/// geometry: far beyond any image, and far within the integers that pixel coordinates
+/// become (sample counts, region bounds).
+const FAR_PX: f64 = 1e7;
+
+/// Whether `p` is not finite or beyond [`FAR_PX`]: a degenerate homography's point,
+/// refused while it is a float, before it sizes or indexes anything.
+pub(crate) fn far_out(p: Vec2) -> bool {
+    !(p.x.abs() < FAR_PX && p.y.abs() < FAR_PX)
+}
+
 /// Crossing tolerance (px) where it is the measurement, and where it only starts the
 /// pixel-model fit or the coarse pass.
 const CROSSING_TOL: f64 = 1e-3;
@@ -516,8 +527,7 @@ fn refine_once(
         .collect::<Option<_>>()?;
     // A polygon with a corner far outside the image (or not finite) has nothing to
     // measure there, and its side lengths would size the sampling below.
-    let far = 1e7 + (img.width + img.height) as f64;
-    if px.iter().any(|p| !(p.x.abs() < far && p.y.abs() < far)) {
+    if px.iter().any(|p| far_out(*p)) {
         return None;
     }
     // Orientation in raw pixels: the outward normal of side a→b is sign·(t.y, −t.x).

@@ -16,11 +16,12 @@
 //! blurred model's gradient and the pattern's motion (see [`jacobian`]).
 
 use super::gray::Gray;
-use super::refine::Lens;
+use super::refine::{far_out, Lens};
 use nalgebra::{DVector, SMatrix, SVector, U9};
 use rigcal_core::geometry::homography::square_to_quad;
 use rigcal_core::geometry::{normal_cdf, Mat3, Vec2, Vec3};
 use rigcal_core::target::board::cell_white;
+use rigcal_core::target::tag36h11::WIDTH_AT_BORDER;
 use rigcal_solve::lm::{minimize, Damping, Dense, LeastSquares, Rules, Termination};
 
 /// Tags whose shallowest extent across a side is under this many pixels are fitted
@@ -260,9 +261,6 @@ struct Compared {
 /// Margin (px) of the sub-sample grid round the compared pixels: the blur kernel's reach
 /// at the largest σ accepted.
 const KERNEL_REACH_PX: i64 = 6;
-/// How far (px) from the image's origin a region's bounds may lie: far beyond any image,
-/// and far within the integers the bounds become.
-const FAR_PX: f64 = 1e7;
 /// Spacing (px) of the grid on which the lens is unprojected for a region.
 const COARSE: usize = 4;
 const MAX_SIGMA: f64 = 1.5;
@@ -292,7 +290,7 @@ fn region(img: &Gray, corners: &[Vec2; 4], lens: Lens, sub_n: usize) -> Option<R
     // Bounds far outside any image (a degenerate quad whose ring runs off towards its
     // horizon) are refused while they are floats: as integers they could overflow, and
     // the size check below wrap round to a small number.
-    if !(lo.x > -FAR_PX && lo.y > -FAR_PX && hi.x < FAR_PX && hi.y < FAR_PX) {
+    if far_out(lo) || far_out(hi) {
         return None;
     }
     let x0 = lo.x.floor() as i64 - KERNEL_REACH_PX;
@@ -968,12 +966,9 @@ pub fn fit_whole_tag(
 ) -> Option<WholeFit> {
     // A start thinner than half a pixel per cell (or not finite) is no tag: a
     // degenerate quad, which the model could still be bent to.
-    let shortest_side = (0..4)
-        .map(|k| (start[(k + 1) % 4] - start[k]).norm())
-        .fold(f64::INFINITY, f64::min);
-    if start.iter().any(|c| !(c.x.is_finite() && c.y.is_finite()))
-        || shortest_side < MIN_START_PX
-        || shallowest_extent(start) < MIN_START_PX
+    if start.iter().any(|c| far_out(*c))
+        || super::verify::cell_px(start) < MIN_START_CELL_PX
+        || shallowest_extent(start) < MIN_START_CELL_PX * WIDTH_AT_BORDER as f64
     {
         return None;
     }
@@ -1001,9 +996,9 @@ pub fn fit_whole_tag(
     })
 }
 
-/// Smallest side and extent (px) of a start the fit takes: half a pixel per cell, far
-/// below the smallest legible tag (~12 px, 1.5 px per cell).
-const MIN_START_PX: f64 = 4.0;
+/// Smallest cell (px, along the shortest side and across the shallowest extent) of a
+/// start the fit takes: far below the smallest legible tag's (~1.5 px).
+const MIN_START_CELL_PX: f64 = 0.5;
 
 /// Width (px) of the box by which the sharp pattern is smoothed (a box of
 /// [`AA_SUBSAMPLES`] sub-samples): part of the blur the image shows that the fit's σ
