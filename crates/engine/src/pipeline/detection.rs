@@ -317,9 +317,9 @@ pub fn decode_gray(
     expected: Option<(u32, u32)>,
     max_pixels: u64,
 ) -> Result<Gray, String> {
-    let (_, img) =
-        imageio::decode(bytes, expected, max_pixels).map_err(|e| format!("expected {e}"))?;
-    Ok(Gray::from_dynamic(&img))
+    imageio::decode_gray(bytes, expected, max_pixels)
+        .map(|(_, gray)| gray)
+        .map_err(|e| format!("expected {e}"))
 }
 
 /// What one image gave: tag corners (motion method) or feature-line points (vanishing).
