@@ -2,8 +2,8 @@
 //! `car-hall` preset, seed 1, frame 0 of the front camera: 8 AprilGrids and wall tags,
 //! 77 tags; blur, vignetting, gain, noise, JPEG q 92), so that regressions of the
 //! detector's speed show, at both detection qualities. The image is rendered once per run (a few seconds).
-//! Also the X-junction scan for unseeded boards on that image, and one realistic view of
-//! a thin-line "#" grid (`line_grid_rig_view`).
+//! Also the X-junction scan for unseeded boards on that image, the decoding of that image
+//! as a colour JPEG, and one realistic view of a thin-line "#" grid (`line_grid_rig_view`).
 //! Medians over samples; see docs/performance.md.
 
 use rigcal_detect::gray::Gray;
@@ -30,6 +30,32 @@ fn dense_hall_image_1080p(bencher: divan::Bencher, quality: Quality) {
     let opts = DetectOptions::of_quality(quality);
     rigcal_detect::quads::warm_up(&opts.quads).expect("detector");
     bencher.bench(|| detect_tags(&img, &h.targets, Some(camera), &opts).expect("detect"));
+}
+
+/// Decoding a colour 1080p JPEG into the detector's grey levels: the luma plane
+/// (`imageio::decode_gray`) against the general decoder's RGB turned grey, on the dense
+/// hall image tinted (channels × 0.85 / 0.97 / 1.08) and encoded at quality 92.
+#[divan::bench(sample_count = 20, args = ["luma plane", "rgb then grey"])]
+fn colour_jpeg_1080p_to_grey(bencher: divan::Bencher, path: &str) {
+    let (_, img) = dense_hall();
+    let rgb = image::RgbImage::from_fn(img.width as u32, img.height as u32, |x, y| {
+        let v = img.data[y as usize * img.width + x as usize];
+        image::Rgb([0.85 * v, 0.97 * v, (1.08 * v).min(255.0)].map(|c| c.round() as u8))
+    });
+    let mut jpeg = Vec::new();
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut jpeg, 92)
+        .encode_image(&rgb)
+        .expect("encode");
+    let luma = path == "luma plane";
+    bencher.bench(|| {
+        if luma {
+            rigcal_detect::imageio::decode_gray(&jpeg, None, u64::MAX)
+                .expect("decode")
+                .1
+        } else {
+            Gray::from_dynamic(&image::load_from_memory(&jpeg).expect("decode"))
+        }
+    });
 }
 
 /// The X-junction scan that places the bright-grown searches for unseeded boards
