@@ -319,6 +319,20 @@ mod tests {
         ));
     }
 
+    /// A CMYK JPEG (written by Pillow) has no luma plane: it reads as the general
+    /// decoder's grey of its RGB.
+    #[test]
+    fn cmyk_jpegs_read_through_the_general_decoder() {
+        let c = include_bytes!("../testdata/cmyk_32x24.jpg");
+        let (meta, gray) = decode_gray(c, Some((32, 24)), 1 << 20).unwrap();
+        assert_eq!((meta.format, gray.width, gray.height), ("jpeg", 32, 24));
+        let general = Gray::from_dynamic(&image::load_from_memory(c).unwrap());
+        assert_eq!(gray.data, general.data);
+        let spread = gray.data.iter().fold(0.0f32, |m, v| m.max(*v))
+            - gray.data.iter().fold(255.0f32, |m, v| m.min(*v));
+        assert!(spread > 50.0, "a pattern, not a flat grey: {spread}");
+    }
+
     /// CRC-32 (PNG chunks), bitwise.
     fn crc32(data: &[u8]) -> u32 {
         let mut c = 0xffff_ffffu32;
