@@ -85,13 +85,18 @@ fn an_isolated_planar_drive_is_degraded_with_each_height_held_and_named() {
 
 /// A hall capture rendered as a vehicle's cameras deliver it (JPEG q 92, blur,
 /// vignetting, gain/offset, noise; AprilGrids of mixed sizes, wall tags, boards cut by
-/// the border; two radtan and two fisheye cameras), at 1024×576 to keep the test short,
-/// uploaded to the real service as one tar archive: the job detects and calibrates it to
-/// a `succeeded` result within 2 mm and 0.02° of the truth, every truth within 3 σ.
+/// the border; two radtan and two fisheye cameras; two of them colour, white balance
+/// off neutral, two grey), at 1024×576 to keep the test short, uploaded to the real
+/// service as one tar archive: the job detects and calibrates it to a `succeeded`
+/// result within 2 mm and 0.02° of the truth, every truth within 3 σ.
 #[tokio::test]
 async fn a_rendered_hall_capture_calibrates_through_the_service() {
     let h = hall("car-hall", 2, Some((1024, 576))).unwrap();
-    let nuisance = Nuisance::default();
+    let grey = Nuisance::default();
+    let colour = Nuisance {
+        colour: Some(rigcal_synth::hall::HALL_WHITE_BALANCE),
+        ..Nuisance::default()
+    };
     let capture = h.image_capture(true);
     let mut files: Vec<(String, Vec<u8>)> = vec![(
         "capture/session.json".into(),
@@ -100,10 +105,11 @@ async fn a_rendered_hall_capture_calibrates_through_the_service() {
     for (frame, spec) in capture.manifest.frames.iter().enumerate() {
         for (cam, path) in &spec.images {
             let ci = h.cameras.iter().position(|c| &c.0 == cam).unwrap();
-            let img = h.render(frame, ci, &nuisance, (frame * 8 + ci) as u64);
+            let nuisance = if ci % 2 == 1 { &colour } else { &grey };
+            let img = h.render(frame, ci, nuisance, (frame * 8 + ci) as u64);
             files.push((
                 format!("capture/{path}"),
-                Hall::encode(&img, &nuisance).unwrap(),
+                Hall::encode(&img, nuisance).unwrap(),
             ));
         }
     }

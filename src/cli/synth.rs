@@ -29,6 +29,10 @@ pub struct Args {
     /// Write PNG instead of JPEG (q 92).
     #[arg(long)]
     png: bool,
+    /// Write colour images, as a colour camera delivers them (its white balance a little
+    /// off neutral), instead of grey ones.
+    #[arg(long)]
+    colour: bool,
     /// Hall presets: AprilGrids only, no tags scattered on the walls.
     #[arg(long)]
     boards_only: bool,
@@ -47,6 +51,7 @@ pub fn run(a: Args) -> Result<i32> {
         let nuisance = hall::Nuisance {
             noise: a.grey_noise,
             jpeg_quality: (!a.png).then_some(92),
+            colour: a.colour.then_some(hall::HALL_WHITE_BALANCE),
             ..Default::default()
         };
         let w = hall::write_capture(&scene, out, a.images.then_some(&nuisance), a.noise, a.seed)?;
@@ -58,9 +63,9 @@ pub fn run(a: Args) -> Result<i32> {
         );
         return Ok(0);
     }
-    if a.images || a.size.is_some() || a.boards_only {
+    if a.images || a.size.is_some() || a.boards_only || a.colour {
         return Err(anyhow!(
-            "--images/--size/--boards-only: only for the hall presets ({})",
+            "--images/--size/--boards-only/--colour: only for the hall presets ({})",
             hall::PRESETS.join(", ")
         ));
     }

@@ -47,7 +47,15 @@ pub struct Nuisance {
     pub jpeg_quality: Option<u8>,
     /// Fine cells per side of an edge pixel (the renderer's accuracy/cost trade).
     pub edge_cells: usize,
+    /// A colour camera's white balance: the rendered level scaled per channel (R, G, B)
+    /// and written as a colour image, as vehicle cameras deliver theirs; `None` writes
+    /// grey. The render itself is grey (the prints are black and white).
+    pub colour: Option<[f64; 3]>,
 }
+
+/// A colour camera's white balance a little off neutral: reds low, blues high, as
+/// under the cold light of a hall.
+pub const HALL_WHITE_BALANCE: [f64; 3] = [0.88, 1.0, 1.07];
 
 impl Default for Nuisance {
     fn default() -> Self {
@@ -59,6 +67,7 @@ impl Default for Nuisance {
             offset: 8.0,
             jpeg_quality: Some(92),
             edge_cells: 12,
+            colour: None,
         }
     }
 }
@@ -726,16 +735,46 @@ impl Hall {
 
     /// Encode one rendered image as the capture stores it.
     pub fn encode(img: &image::GrayImage, nuisance: &Nuisance) -> image::ImageResult<Vec<u8>> {
-        let mut out = std::io::Cursor::new(Vec::new());
-        match nuisance.jpeg_quality {
-            Some(q) => {
-                image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q.clamp(1, 100))
-                    .encode_image(img)?
+        match nuisance.colour {
+            Some(balance) => {
+                let rgb = image::RgbImage::from_fn(img.width(), img.height(), |x, y| {
+                    let v = f64::from(img.get_pixel(x, y)[0]);
+                    image::Rgb(balance.map(|c| (v * c).round().clamp(0.0, 255.0) as u8))
+                });
+                encode_as(
+                    rgb.as_raw(),
+                    rgb.dimensions(),
+                    image::ExtendedColorType::Rgb8,
+                    nuisance.jpeg_quality,
+                )
             }
-            None => img.write_to(&mut out, image::ImageFormat::Png)?,
+            None => encode_as(
+                img.as_raw(),
+                img.dimensions(),
+                image::ExtendedColorType::L8,
+                nuisance.jpeg_quality,
+            ),
         }
-        Ok(out.into_inner())
     }
+}
+
+/// Pixels `px` (`w × h`, 8-bit channels of `colour`) as a JPEG of quality
+/// `jpeg_quality`, or a PNG.
+fn encode_as(
+    px: &[u8],
+    (w, h): (u32, u32),
+    colour: image::ExtendedColorType,
+    jpeg_quality: Option<u8>,
+) -> image::ImageResult<Vec<u8>> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    match jpeg_quality {
+        Some(q) => image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q.clamp(1, 100))
+            .encode(px, w, h, colour)?,
+        None => {
+            image::write_buffer_with_format(&mut out, px, w, h, colour, image::ImageFormat::Png)?
+        }
+    }
+    Ok(out.into_inner())
 }
 
 /// What the camera does to the rendered grey levels: a per-image gain and offset drawn
@@ -836,4 +875,36 @@ pub fn write_capture(
         images,
         visible_tags: capture.images.iter().map(|i| i.corners.len() / 4).sum(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A colour camera's image is the grey render through its white balance, channel by
+    /// channel (clipped at white); a grey one is the render as it is.
+    #[test]
+    fn colour_images_carry_the_render_through_the_white_balance() {
+        let grey = image::GrayImage::from_fn(16, 8, |x, y| image::Luma([(x * 16 + y) as u8]));
+        let lossless = |colour| Nuisance {
+            colour,
+            jpeg_quality: None,
+            ..Nuisance::default()
+        };
+        let png = Hall::encode(&grey, &lossless(Some([0.5, 1.0, 2.0]))).unwrap();
+        let rgb = image::load_from_memory(&png).unwrap();
+        let image::DynamicImage::ImageRgb8(rgb) = rgb else {
+            panic!("not an 8-bit RGB image: {:?}", rgb.color());
+        };
+        for (g, p) in grey.pixels().zip(rgb.pixels()) {
+            let v = f64::from(g[0]);
+            let want = [(v * 0.5).round(), v, (v * 2.0).min(255.0)].map(|c| c as u8);
+            assert_eq!(p.0, want, "grey {v}");
+        }
+        let png = Hall::encode(&grey, &lossless(None)).unwrap();
+        assert_eq!(
+            image::load_from_memory(&png).unwrap(),
+            image::DynamicImage::ImageLuma8(grey)
+        );
+    }
 }
