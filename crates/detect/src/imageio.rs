@@ -70,7 +70,7 @@ pub fn inspect(
     expected: Option<(u32, u32)>,
     max_pixels: u64,
 ) -> Result<ImageMeta, ImageError> {
-    decode_gray(bytes, expected, max_pixels).map(|(meta, _)| meta)
+    decode(bytes, expected, max_pixels).map(|(meta, _)| meta)
 }
 
 /// [`inspect`], keeping the decoded pixels as the detector reads them: grey levels
@@ -86,10 +86,20 @@ pub fn decode_gray(
     expected: Option<(u32, u32)>,
     max_pixels: u64,
 ) -> Result<(ImageMeta, Gray), ImageError> {
+    decode(bytes, expected, max_pixels).map(|(meta, img)| (meta, Gray::from_dynamic(&img)))
+}
+
+/// The checks and the decode of [`decode_gray`], its pixels as decoded (a JPEG's luma as
+/// 8-bit grey): [`inspect`] needs no more.
+fn decode(
+    bytes: &[u8],
+    expected: Option<(u32, u32)>,
+    max_pixels: u64,
+) -> Result<(ImageMeta, image::DynamicImage), ImageError> {
     let meta = checked_header(bytes, expected, max_pixels)?;
     if meta.format == "jpeg" {
-        if let Some(gray) = jpeg_luma(bytes, &meta)? {
-            return Ok((meta, gray));
+        if let Some(luma) = jpeg_luma(bytes, &meta)? {
+            return Ok((meta, image::DynamicImage::ImageLuma8(luma)));
         }
     }
     let (mut r, _) = reader(bytes)?;
@@ -100,7 +110,7 @@ pub fn decode_gray(
     limits.max_alloc = Some(meta.width as u64 * meta.height as u64 * 8 + (64 << 20));
     r.limits(limits);
     let img = r.decode().map_err(undecodable)?;
-    Ok((meta, Gray::from_dynamic(&img)))
+    Ok((meta, img))
 }
 
 /// The header, checked against the pixel budget and the expected size before anything
@@ -142,7 +152,7 @@ fn checked_header(
 
 /// The luma plane of a YCbCr or grey JPEG (the decoder `image` itself uses, with its
 /// options, asked for grey output); `None` for a JPEG stored in another colour space.
-fn jpeg_luma(bytes: &[u8], meta: &ImageMeta) -> Result<Option<Gray>, ImageError> {
+fn jpeg_luma(bytes: &[u8], meta: &ImageMeta) -> Result<Option<image::GrayImage>, ImageError> {
     use zune_core::colorspace::ColorSpace;
     let options = zune_core::options::DecoderOptions::default()
         .set_strict_mode(false)
@@ -161,18 +171,15 @@ fn jpeg_luma(bytes: &[u8], meta: &ImageMeta) -> Result<Option<Gray>, ImageError>
         return Ok(None);
     }
     let px = d.decode().map_err(undecodable)?;
-    let (w, h) = (meta.width as usize, meta.height as usize);
-    if px.len() != w * h {
-        return Err(ImageError::Undecodable(format!(
-            "{} luma samples for a {w}×{h} JPEG",
-            px.len()
-        )));
+    let (w, h, n) = (meta.width, meta.height, px.len());
+    let mismatch = || ImageError::Undecodable(format!("{n} luma samples for a {w}×{h} JPEG"));
+    // Exactly one sample a pixel (`from_raw` alone would also take a longer buffer).
+    if n as u64 != u64::from(w) * u64::from(h) {
+        return Err(mismatch());
     }
-    Ok(Some(Gray {
-        width: w,
-        height: h,
-        data: px.iter().map(|&v| v as f32).collect(),
-    }))
+    image::GrayImage::from_raw(w, h, px)
+        .map(Some)
+        .ok_or_else(mismatch)
 }
 
 fn undecodable(e: impl std::fmt::Display) -> ImageError {
