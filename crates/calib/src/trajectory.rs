@@ -213,13 +213,13 @@ pub fn estimate(session: &Session, opts: &LmOptions) -> Result<Trajectories, Tra
                 .chain(queue.iter().map(|(q, _)| *q))
                 .collect();
             let recons = par_map(&rest, cores(), |&q| {
-                reconstruct_scene(session, &scene_of_point, q, opts, &reference_poses)
+                reconstruct_scene(session, &scene_of_point, q, opts, &reference_poses, 1)
             });
             ahead = Some(rest.into_iter().zip(recons).collect());
         }
         let recon = match ahead.as_mut().and_then(|a| a.remove(&s)) {
             Some(r) => r,
-            None => reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses),
+            None => reconstruct_scene(session, &scene_of_point, s, opts, &reference_poses, cores()),
         };
         match recon {
             Ok(mut r) => {
@@ -408,14 +408,16 @@ fn scene_images(
     out
 }
 
-// Posing an image may fail; `entry` would insert before we know the pose exists.
-#[allow(clippy::map_entry)]
+/// Scene `s` reconstructed: its images posed, its bodies and free points placed. The
+/// per-image and per-body work of a scene of bodies spreads over `threads` (the scenes
+/// that run side by side on all cores get 1 each).
 fn reconstruct_scene(
     session: &Session,
     scene_of_point: &[Option<usize>],
     s: usize,
     opts: &LmOptions,
     reference_poses: &BTreeMap<usize, Pose>,
+    threads: usize,
 ) -> Result<SceneRecon, String> {
     let images = scene_images(session, scene_of_point, s);
     let kinds = &session.points.kinds;
@@ -446,13 +448,19 @@ fn reconstruct_scene(
         loop {
             let mut progress = false;
             // Pose the images from the placed bodies they see that agree with each other
-            // (not where what is left is one plane that two poses explain).
-            for (&key, obs) in &images {
-                if poses.contains_key(&key) {
-                    continue;
-                }
-                if let Some(pose) = pose_from_bodies(&cams[key.1], obs, kinds, &bodies) {
-                    poses.insert(key, pose);
+            // (not where what is left is one plane that two poses explain). Each image
+            // reads only the placed bodies, each body only the posed images: both run
+            // spread over `threads`, with the serial loop's results.
+            let unposed: Vec<(&ImageKey, &Vec<(usize, Vec2)>)> = images
+                .iter()
+                .filter(|(k, _)| !poses.contains_key(k))
+                .collect();
+            let posed = par_map(&unposed, threads, |(key, obs)| {
+                pose_from_bodies(&cams[key.1], obs, kinds, &bodies)
+            });
+            for ((key, _), pose) in unposed.iter().zip(posed) {
+                if let Some(pose) = pose {
+                    poses.insert(**key, pose);
                     progress = true;
                 }
             }
@@ -466,8 +474,12 @@ fn reconstruct_scene(
                     _ => None,
                 })
                 .collect();
-            for body in unplaced {
-                if let Some(scene_from_body) = place_body(body, &images, &poses, kinds, &cams) {
+            let unplaced: Vec<usize> = unplaced.into_iter().collect();
+            let placed = par_map(&unplaced, threads, |&body| {
+                place_body(body, &images, &poses, kinds, &cams)
+            });
+            for (body, scene_from_body) in unplaced.into_iter().zip(placed) {
+                if let Some(scene_from_body) = scene_from_body {
                     bodies.insert(body, scene_from_body);
                     progress = true;
                 }
@@ -1160,5 +1172,47 @@ mod tests {
         let mut alone = scene(&[((7, 2), cam(7)), ((8, 2), cam(8))], SceneScale::Unknown);
         assert!(!scale_from_shared_motion(&mut alone, [&metric].into_iter()));
         assert_eq!(alone.points[&0], Vec3::new(1.0, 2.0, 3.0));
+    }
+
+    #[test]
+    fn a_scene_of_bodies_is_the_same_on_one_thread_or_several() {
+        // The hall's boards and tags: each image posed from the placed bodies and each body
+        // placed from the posed images, spread over threads; nothing may depend on the
+        // order the threads finish in.
+        let (m, _) = rigcal_synth::generate("car-hall", 7, 0.3).expect("preset");
+        let session = rigcal_core::session::parse_session(&serde_json::to_vec(&m).expect("json"))
+            .expect("session");
+        let (scene_of_point, n) = scene_components(&session);
+        let opts = LmOptions::default();
+        let mut posed = 0;
+        for s in 0..n {
+            let run = |threads| {
+                reconstruct_scene(
+                    &session,
+                    &scene_of_point,
+                    s,
+                    &opts,
+                    &BTreeMap::new(),
+                    threads,
+                )
+            };
+            let (one, two) = (run(1), run(3));
+            match (one, two) {
+                (Ok(a), Ok(b)) => {
+                    posed += a.poses.len();
+                    assert_eq!(a.poses, b.poses, "scene {s}: image poses");
+                    assert_eq!(a.bodies, b.bodies, "scene {s}: bodies");
+                    assert_eq!(a.points, b.points, "scene {s}: points");
+                    assert_eq!(a.sigma_px.to_bits(), b.sigma_px.to_bits(), "scene {s}: σ");
+                }
+                (Err(a), Err(b)) => assert_eq!(a, b, "scene {s}"),
+                (a, b) => panic!(
+                    "scene {s}: {:?} on one thread, {:?} on three",
+                    a.err(),
+                    b.err()
+                ),
+            }
+        }
+        assert!(posed >= 10, "the hall's images are posed ({posed})");
     }
 }
