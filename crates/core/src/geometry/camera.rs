@@ -49,15 +49,32 @@ impl CameraModel {
 
     /// Distort normalised coordinates; returns the distorted point and d(distorted)/d(undistorted).
     fn distort(&self, x: f64, y: f64) -> (Vec2, Matrix2<f64>) {
+        self.distorted::<true>(x, y)
+    }
+
+    /// The distorted point alone, the same bit for bit as [`distort`](Self::distort)'s:
+    /// a projection that needs no Jacobian (reprojection costs, a tag's side in pixels)
+    /// skips its arithmetic.
+    fn distort_point(&self, x: f64, y: f64) -> Vec2 {
+        self.distorted::<false>(x, y).0
+    }
+
+    /// Both of the above: the point's arithmetic is written once, and with `JACOBIAN`
+    /// false the Jacobian is the zero matrix, never computed.
+    #[inline(always)]
+    fn distorted<const JACOBIAN: bool>(&self, x: f64, y: f64) -> (Vec2, Matrix2<f64>) {
         match *self {
             CameraModel::Pinhole => (Vec2::new(x, y), Matrix2::identity()),
             CameraModel::Radtan { k1, k2, p1, p2, k3 } => {
                 let r2 = x * x + y * y;
                 let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
-                let dradial_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
-                let (drx, dry) = (dradial_dr2 * 2.0 * x, dradial_dr2 * 2.0 * y);
                 let xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x);
                 let yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y;
+                if !JACOBIAN {
+                    return (Vec2::new(xd, yd), Matrix2::zeros());
+                }
+                let dradial_dr2 = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2);
+                let (drx, dry) = (dradial_dr2 * 2.0 * x, dradial_dr2 * 2.0 * y);
                 let j = Matrix2::new(
                     radial + x * drx + 2.0 * p1 * y + 6.0 * p2 * x,
                     x * dry + 2.0 * p1 * x + 2.0 * p2 * y,
@@ -75,10 +92,13 @@ impl CameraModel {
                 let t2 = th * th;
                 let poly = 1.0 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4)));
                 let thd = th * poly;
+                let s = thd / r;
+                if !JACOBIAN {
+                    return (Vec2::new(x * s, y * s), Matrix2::zeros());
+                }
                 let dthd_dth =
                     1.0 + t2 * (3.0 * k1 + t2 * (5.0 * k2 + t2 * (7.0 * k3 + t2 * 9.0 * k4)));
                 let dth_dr = 1.0 / (1.0 + r * r);
-                let s = thd / r;
                 let ds_dr = (dthd_dth * dth_dr * r - thd) / (r * r);
                 let (drdx, drdy) = (x / r, y / r);
                 let j = Matrix2::new(
@@ -123,18 +143,32 @@ impl Camera {
 
     /// Project a point in camera coordinates to pixels; `None` behind the camera.
     pub fn project(&self, p: &Vec3) -> Option<Vec2> {
-        self.project_with_jacobian(p).map(|(uv, _)| uv)
+        let (x, y) = self.normalised(p)?;
+        Some(self.to_pixel(self.model.distort_point(x, y)))
     }
 
-    /// Projection and its Jacobian d(u,v)/d(X,Y,Z).
-    pub fn project_with_jacobian(&self, p: &Vec3) -> Option<(Vec2, Matrix2x3<f64>)> {
+    /// `(X/Z, Y/Z)`; `None` behind the camera.
+    #[inline(always)]
+    fn normalised(&self, p: &Vec3) -> Option<(f64, f64)> {
         if p.z < MIN_DEPTH {
             return None;
         }
         let iz = 1.0 / p.z;
-        let (x, y) = (p.x * iz, p.y * iz);
+        Some((p.x * iz, p.y * iz))
+    }
+
+    /// Distorted normalised coordinates to pixels.
+    #[inline(always)]
+    fn to_pixel(&self, d: Vec2) -> Vec2 {
+        Vec2::new(self.fx * d.x + self.cx, self.fy * d.y + self.cy)
+    }
+
+    /// Projection and its Jacobian d(u,v)/d(X,Y,Z).
+    pub fn project_with_jacobian(&self, p: &Vec3) -> Option<(Vec2, Matrix2x3<f64>)> {
+        let (x, y) = self.normalised(p)?;
+        let iz = 1.0 / p.z;
         let (d, jd) = self.model.distort(x, y);
-        let uv = Vec2::new(self.fx * d.x + self.cx, self.fy * d.y + self.cy);
+        let uv = self.to_pixel(d);
         let jn = Matrix2x3::new(iz, 0.0, -x * iz, 0.0, iz, -y * iz);
         let jk = Matrix2::new(self.fx, 0.0, 0.0, self.fy);
         Some((uv, jk * jd * jn))
@@ -177,7 +211,7 @@ impl Camera {
                 return None;
             }
         }
-        let (d, _) = self.model.distort(xy.x, xy.y);
+        let d = self.model.distort_point(xy.x, xy.y);
         ((d - target).norm() < 1e-9).then_some(xy)
     }
 
@@ -218,6 +252,27 @@ mod tests {
                 ..base
             },
         ]
+    }
+
+    #[test]
+    fn projection_without_the_jacobian_is_the_same_point_bit_for_bit() {
+        for cam in cameras() {
+            for i in -12..=12 {
+                for j in -8..=8 {
+                    // Out to 50° off axis, and the optical axis itself.
+                    let p = Vec3::new(0.1 * i as f64, 0.1 * j as f64, 1.0 + 0.05 * j as f64);
+                    let (with, _) = cam.project_with_jacobian(&p).unwrap();
+                    let alone = cam.project(&p).unwrap();
+                    assert_eq!(
+                        (alone.x.to_bits(), alone.y.to_bits()),
+                        (with.x.to_bits(), with.y.to_bits()),
+                        "{:?} at {p:?}",
+                        cam.model
+                    );
+                }
+            }
+            assert_eq!(cam.project(&Vec3::new(0.1, 0.2, -1.0)), None);
+        }
     }
 
     #[test]
