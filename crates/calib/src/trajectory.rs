@@ -1196,8 +1196,7 @@ mod tests {
                     threads,
                 )
             };
-            let (one, two) = (run(1), run(3));
-            match (one, two) {
+            match (run(1), run(3)) {
                 (Ok(a), Ok(b)) => {
                     posed += a.poses.len();
                     assert_eq!(a.poses, b.poses, "scene {s}: image poses");

@@ -259,7 +259,7 @@ mod tests {
         for cam in cameras() {
             for i in -12..=12 {
                 for j in -8..=8 {
-                    // Out to 50° off axis, and the optical axis itself.
+                    // Out to 67° off axis, and the optical axis itself.
                     let p = Vec3::new(0.1 * i as f64, 0.1 * j as f64, 1.0 + 0.05 * j as f64);
                     let (with, _) = cam.project_with_jacobian(&p).unwrap();
                     let alone = cam.project(&p).unwrap();
