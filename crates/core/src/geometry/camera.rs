@@ -143,18 +143,18 @@ impl Camera {
 
     /// Project a point in camera coordinates to pixels; `None` behind the camera.
     pub fn project(&self, p: &Vec3) -> Option<Vec2> {
-        let (x, y) = self.normalised(p)?;
+        let (x, y, _) = self.normalised(p)?;
         Some(self.to_pixel(self.model.distort_point(x, y)))
     }
 
-    /// `(X/Z, Y/Z)`; `None` behind the camera.
+    /// `(X/Z, Y/Z)` and `1/Z`; `None` behind the camera.
     #[inline(always)]
-    fn normalised(&self, p: &Vec3) -> Option<(f64, f64)> {
+    fn normalised(&self, p: &Vec3) -> Option<(f64, f64, f64)> {
         if p.z < MIN_DEPTH {
             return None;
         }
         let iz = 1.0 / p.z;
-        Some((p.x * iz, p.y * iz))
+        Some((p.x * iz, p.y * iz, iz))
     }
 
     /// Distorted normalised coordinates to pixels.
@@ -165,8 +165,7 @@ impl Camera {
 
     /// Projection and its Jacobian d(u,v)/d(X,Y,Z).
     pub fn project_with_jacobian(&self, p: &Vec3) -> Option<(Vec2, Matrix2x3<f64>)> {
-        let (x, y) = self.normalised(p)?;
-        let iz = 1.0 / p.z;
+        let (x, y, iz) = self.normalised(p)?;
         let (d, jd) = self.model.distort(x, y);
         let uv = self.to_pixel(d);
         let jn = Matrix2x3::new(iz, 0.0, -x * iz, 0.0, iz, -y * iz);
