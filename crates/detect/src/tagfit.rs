@@ -892,6 +892,15 @@ fn jacobian(
             Some((pattern_homography(&moved)? - h) / CORNER_STEP)
         })
         .collect::<Option<_>>()?;
+    // `e·(∂Hⱼ·u) = Σₐᵦ eₐ·uᵦ·∂Hⱼ[a, b]`: the nine products `eₐ·uᵦ` once per pixel, then
+    // each entry of `∂Hⱼ` scales its product into all eight corner columns at once (a
+    // loop over the columns, in vector lanes) instead of eight matrix-vector products.
+    let mut dh_by_entry = [[0.0; 8]; 9];
+    for (j, dhj) in dh.iter().enumerate() {
+        for (ab, by_entry) in dh_by_entry.iter_mut().enumerate() {
+            by_entry[j] = dhj[(ab / 3, ab % 3)];
+        }
+    }
     let mut jac = Vec::with_capacity(reg.pixels.len());
     for (i, px) in reg.pixels.iter().enumerate() {
         let coef_w = lv[1] + lv[5] * px.dx + lv[6] * px.dy;
@@ -907,10 +916,15 @@ fn jacobian(
         let u = hinv * Vec3::new(px.plane.x, px.plane.y, 1.0);
         let g = px.lens_jac.transpose() * grad;
         let e = Vec3::new(g.x, g.y, -g.dot(&px.plane));
-        let mut row = Row::zeros();
-        for (j, dhj) in dh.iter().enumerate() {
-            row[j] = e.dot(&(dhj * u));
+        let mut corners = [0.0; 8];
+        for (ab, by_entry) in dh_by_entry.iter().enumerate() {
+            let eu = e[ab / 3] * u[ab % 3];
+            for (r, d) in corners.iter_mut().zip(by_entry) {
+                *r += d * eu;
+            }
         }
+        let mut row = Row::zeros();
+        row.fixed_rows_mut::<8>(0).copy_from_slice(&corners);
         row[8] = -(coef_w * (ws[i] - w0[i]) + coef_o * (os[i] - o0[i])) / ds;
         jac.push(row);
     }
