@@ -312,7 +312,7 @@ fn fit_edge(
     let mut profile = StepProfile {
         samples,
         phi,
-        phi_at: None,
+        phi_for: None,
     };
     let fit = minimize(&mut profile, init, &STEP_FIT)?;
     let x = fit.point;
@@ -349,12 +349,12 @@ const STEP_SETTLED_PX: f64 = 1e-3;
 /// lens blur: such a point is refused).
 ///
 /// The fit asks for the cost at a point and then, if it is kept, the linearisation
-/// there: Φ and its density at every sample are computed once for both (`phi`, valid at
-/// `phi_at`), which is most of the arithmetic of a fit.
+/// there: Φ and its density at every sample are computed once for both (`phi`, valid
+/// for the `(e, σ)` of `phi_for`), which is most of the arithmetic of a fit.
 struct StepProfile<'a> {
     samples: &'a [(f64, f64)],
     phi: &'a mut [(f64, f64)],
-    phi_at: Option<nalgebra::Vector4<f64>>,
+    phi_for: Option<(f64, f64)>,
 }
 
 /// Samples of an edge fit kept on the stack (a ±3 px window 3 px wide reads ~30).
@@ -363,11 +363,11 @@ const STACK_SAMPLES: usize = 64;
 impl StepProfile<'_> {
     /// Φ and its density at every sample for `(e, σ) = (x[2], x[3])`.
     fn phi_at(&mut self, x: &nalgebra::Vector4<f64>) -> &[(f64, f64)] {
-        if self.phi_at != Some(*x) {
+        if self.phi_for != Some((x[2], x[3])) {
             for ((s, _), phi) in self.samples.iter().zip(self.phi.iter_mut()) {
                 *phi = normal_cdf_pdf((s - x[2]) / x[3]);
             }
-            self.phi_at = Some(*x);
+            self.phi_for = Some((x[2], x[3]));
         }
         self.phi
     }
