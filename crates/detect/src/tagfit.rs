@@ -554,7 +554,9 @@ fn to_pattern(hinv: &Mat3, plane: &[Vec2], pu: &mut [f64], pv: &mut [f64]) -> bo
             h10 * x + h11 * y + h12,
             h20 * x + h21 * y + h22,
         );
-        off_horizon &= !(uz.abs() < 1e-12);
+        // (A NaN is not on the horizon: its point falls outside the pattern below.)
+        let on_horizon = uz.abs() < 1e-12;
+        off_horizon &= !on_horizon;
         let iz = 1.0 / uz;
         *u = ux * iz;
         *v = uy * iz;
