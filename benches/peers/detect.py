@@ -37,6 +37,23 @@ import numpy as np
 from pupil_apriltags import Detector
 
 
+def release(detector):
+    """Free a pupil-apriltags detector before its own `__del__` can: that one destroys the
+    tag families first and the detector after, which reads them while it frees itself (a
+    use after free, pupil-labs/apriltags#46), and at interpreter shutdown it crashed this
+    script now and then after the table was printed. The AprilTag library's own examples
+    free the detector, then the families."""
+    if detector.tag_detector_ptr is None:
+        return
+    detector.libc.apriltag_detector_destroy.restype = None
+    detector.libc.apriltag_detector_destroy(detector.tag_detector_ptr)
+    detector.tag_detector_ptr = None
+    for family, tf in detector.tag_families.items():
+        destroy = getattr(detector.libc, f"{family}_destroy")
+        destroy.restype = None
+        destroy(tf)
+
+
 def match_error(corners, truth):
     """Per-corner distance to the nearest true corner."""
     return [min(np.hypot(*(np.array(c) - np.array(t))) for t in truth) for c in corners]
@@ -126,6 +143,7 @@ def capture_main(a):
         rms = float(np.sqrt(np.mean(np.square(err)))) if err else float("nan")
         print(f"{name:<28} {len(truth):>6} {total:>6} {100 * found / max(1, total):>8.2f} "
               f"{wrong:>6} {rms:>8.4f} {statistics.median(ms):>8.1f}")
+    release(pupil)
     return 0
 
 
@@ -239,6 +257,7 @@ def main():
                   f"{100 * s['found'] / max(1, s['visible']):>7.2f} {s['wrong']:>5} "
                   f"{np.sqrt(np.mean(e ** 2)):>8.4f} {np.percentile(e, 95):>7.3f} "
                   f"{statistics.median(s['ms']):>7.1f}")
+    release(pupil)
     return 0
 
 
