@@ -842,6 +842,33 @@ mod tests {
         }
     }
 
+    /// An edge fit over a window of more pixels than it keeps on the stack
+    /// (`STACK_SAMPLES`: ±8 px across a ±2.5 px window reads ~100) finds the edge where
+    /// the usual window does: on the side itself.
+    #[test]
+    fn an_edge_fit_wider_than_its_stack_finds_the_same_edge() {
+        let (gray, truth) = turned_square(0.3);
+        let (a, b) = (truth[0], truth[1]);
+        let n = {
+            let t = (b - a).normalize();
+            Vec2::new(t.y, -t.x)
+        };
+        let p = a + (b - a) * 0.5;
+        let (e, contrast) = edge_offset(&gray, p, n, 1.0, 2.0, START_TOL).expect("an edge");
+        for across in [FIT_BAND, 8.0] {
+            let window = Window {
+                along: MIN_FIT_WINDOW,
+                across,
+            };
+            let x = fit_edge(&gray, p, n, e, window, Start::Contrast(contrast)).expect("fits");
+            assert!(
+                x[2].abs() < 0.01,
+                "±{across} px across: edge {:.4} px off",
+                x[2]
+            );
+        }
+    }
+
     /// Along a side, a fit started from the step its neighbour settled at settles where
     /// one started from the crossing's contrast and a typical blur does (both stop once
     /// the edge moves under [`STEP_SETTLED_PX`]), and reads the blur the render has.
