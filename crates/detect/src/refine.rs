@@ -842,17 +842,21 @@ mod tests {
         }
     }
 
+    /// The ends of side 0 → 1 of a [`turned_square`] and its normal towards the outside:
+    /// the side runs along +x with the square below it, dark towards +y.
+    fn first_side(truth: &[Vec2; 4]) -> (Vec2, Vec2, Vec2) {
+        let (a, b) = (truth[0], truth[1]);
+        let t = (b - a).normalize();
+        (a, b, Vec2::new(t.y, -t.x))
+    }
+
     /// An edge fit over a window of more pixels than it keeps on the stack
     /// (`STACK_SAMPLES`: ±8 px across a ±2.5 px window reads ~100) finds the edge where
     /// the usual window does: on the side itself.
     #[test]
     fn an_edge_fit_wider_than_its_stack_finds_the_same_edge() {
         let (gray, truth) = turned_square(0.3);
-        let (a, b) = (truth[0], truth[1]);
-        let n = {
-            let t = (b - a).normalize();
-            Vec2::new(t.y, -t.x)
-        };
+        let (a, b, n) = first_side(&truth);
         let p = a + (b - a) * 0.5;
         let (e, contrast) = edge_offset(&gray, p, n, 1.0, 2.0, START_TOL).expect("an edge");
         for across in [FIT_BAND, 8.0] {
@@ -875,12 +879,7 @@ mod tests {
     #[test]
     fn a_fit_started_from_its_neighbour_settles_where_a_fresh_one_does() {
         let (gray, truth) = turned_square(0.3);
-        let (a, b) = (truth[0], truth[1]);
-        // Side 0 → 1 runs along +x with the square below it: dark towards +y.
-        let n = {
-            let t = (b - a).normalize();
-            Vec2::new(t.y, -t.x)
-        };
+        let (a, b, n) = first_side(&truth);
         let window = Window {
             along: MIN_FIT_WINDOW,
             across: FIT_BAND,
